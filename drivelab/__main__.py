@@ -1,0 +1,3 @@
+from drivelab.cli import main
+
+main()

@@ -1,0 +1,210 @@
+"""REINFORCE: the vanilla policy gradient with reward-to-go and an entropy bonus.
+
+The update is the one derived in notebook 001 (Williams 1992; Spinning Up, "VPG")::
+
+    grad J(theta) = E_tau [ sum_t  grad log pi_theta(a_t | s_t) * R_t ],
+    R_t = sum_{t' >= t} gamma^(t' - t) r_t'                      (discounted reward-to-go)
+
+implemented as the loss ``-(1/B) sum_i log pi(a_i|s_i) * Psi_i - ent_coef * H[pi(.|s_i)]`` over
+the B steps of a batch of *whole* episodes. ``Psi`` is the reward-to-go itself (``advantage:
+rtg``), minus its batch mean (``mean``, a constant baseline), or standardised (``normalize``,
+the default: a baseline and a per-batch step size). Every option leaves the gradient's
+expectation pointing the same way; the last two cut its variance.
+
+One iteration = reset every env with fresh seeds, run episodes until at least ``batch_steps``
+steps are recorded, let the episodes in flight finish (envs that finish after the budget is
+reached idle, and their steps are not recorded), then one gradient step. No episode is cut:
+REINFORCE has no critic to bootstrap a cut episode with. A time-limit truncation just ends the
+sum (the standard finite-horizon treatment).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium.vector import AutoresetMode, VectorEnv
+
+from drivelab.config import TrainConfig
+from drivelab.envs import env_spaces, make_vector_env
+from drivelab.episodes import episode_info
+from drivelab.errors import DrivelabError
+from drivelab.nets import Policy
+from drivelab.returns import normalize, reward_to_go
+from drivelab.run import Run
+
+
+@dataclass
+class Params:
+    lr: float = 3e-3
+    gamma: float = 0.99
+    # Minimum recorded env steps per update; the episodes in flight are completed on top.
+    batch_steps: int = 4000
+    ent_coef: float = 0.0
+    # rtg | mean | normalize: what multiplies grad log pi (see the module docstring).
+    advantage: str = "normalize"
+    # Clip the global gradient norm (0 = off).
+    max_grad_norm: float = 0.0
+    hidden: list[int] = field(default_factory=lambda: [64, 64])
+    activation: str = "tanh"
+    # Initial log standard deviation of the Gaussian policy (continuous actions).
+    log_std_init: float = 0.0
+
+    def validate(self) -> None:
+        if self.advantage not in ("rtg", "mean", "normalize"):
+            raise DrivelabError(f"config field 'reinforce.advantage' must be rtg, mean or normalize, got {self.advantage!r}")
+        if not 0.0 <= self.gamma <= 1.0:
+            raise DrivelabError(f"config field 'reinforce.gamma' must be in [0, 1], got {self.gamma}")
+        if self.batch_steps < 1 or self.lr <= 0:
+            raise DrivelabError("config fields 'reinforce.batch_steps' and 'reinforce.lr' must be positive")
+
+
+class EpisodeBatch(NamedTuple):
+    """Flat batch of the recorded steps of whole episodes (B = number of steps)."""
+    obs: torch.Tensor      # (B, *obs_shape)
+    actions: torch.Tensor  # (B,) for Discrete, (B, act_dim) for Box
+    returns: torch.Tensor  # (B,) discounted reward-to-go
+
+
+def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> Policy:
+    hp: Params = cfg.algo_params
+    return Policy(obs_space, act_space, hp.hidden, hp.activation, hp.log_std_init)
+
+
+def policy_gradient_loss(log_prob: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """-(1/B) sum_i log pi(a_i|s_i) * Psi_i: its gradient is minus the policy gradient estimate.
+
+    Args:
+        log_prob: (B,) log-probabilities of the taken actions (differentiable).
+        weights: (B,) Psi, e.g. reward-to-go; treated as a constant.
+    """
+    return -(log_prob * weights.detach()).mean()
+
+
+def advantage_weights(returns: np.ndarray, mode: str) -> np.ndarray:
+    """Psi from the (B,) rewards-to-go: as is, minus the batch mean, or standardised."""
+    if mode == "rtg":
+        return returns
+    if mode == "mean":
+        return returns - returns.mean()
+    return normalize(returns)
+
+
+class RolloutStorage:
+    """Preallocated (T, N, ...) arrays for one iteration's steps, doubled in T when full."""
+
+    def __init__(self, capacity: int, num_envs: int, obs_space: gym.Space, act_space: gym.Space):
+        act_shape = () if isinstance(act_space, gym.spaces.Discrete) else act_space.shape
+        act_dtype = np.int64 if isinstance(act_space, gym.spaces.Discrete) else np.float32
+        self.obs = np.zeros((capacity, num_envs, *obs_space.shape), obs_space.dtype)
+        self.actions = np.zeros((capacity, num_envs, *act_shape), act_dtype)
+        self.rewards = np.zeros((capacity, num_envs), np.float32)
+        self.dones = np.zeros((capacity, num_envs), bool)
+        self.recorded = np.zeros((capacity, num_envs), bool)
+
+    def ensure(self, t: int) -> None:
+        if t < len(self.rewards):
+            return
+        for name in ("obs", "actions", "rewards", "dones", "recorded"):
+            old = getattr(self, name)
+            grown = np.zeros((2 * len(old), *old.shape[1:]), old.dtype)
+            grown[: len(old)] = old
+            setattr(self, name, grown)
+
+
+def collect_episodes(envs: VectorEnv, policy: Policy, storage: RolloutStorage, min_steps: int,
+                     run: Run) -> tuple[EpisodeBatch, int]:
+    """Run whole episodes until at least ``min_steps`` steps are recorded.
+
+    ``envs`` must use ``AutoresetMode.DISABLED``: this loop resets finished envs itself, with
+    seeds from ``run``, so that no step is wasted on Gymnasium's next-step autoreset and every
+    episode's seed is reproducible. Returns the batch and the number of recorded steps.
+    """
+    hp: Params = run.cfg.algo_params
+    num_envs = envs.num_envs
+    everyone = np.ones(num_envs, bool)
+    obs, _ = envs.reset(seed=run.reset_seeds(everyone))
+    recording = everyone.copy()      # env i's current episode belongs to the batch
+    episode_return = np.zeros(num_envs)
+    episode_length = np.zeros(num_envs, np.int64)
+    recorded_steps = 0
+    t = 0
+    while recording.any():
+        storage.ensure(t)
+        action = policy.act(torch.as_tensor(obs, device=run.device))
+        next_obs, reward, terminated, truncated, info = envs.step(policy.to_env(action))
+        done = terminated | truncated
+        storage.obs[t] = obs
+        storage.actions[t] = action.cpu().numpy()
+        storage.rewards[t] = reward
+        storage.dones[t] = done
+        storage.recorded[t] = recording
+        recorded_steps += int(recording.sum())
+        episode_return += reward
+        episode_length += 1
+        if done.any():
+            for i in np.flatnonzero(done & recording):
+                run.stats.add(episode_return[i], episode_length[i], episode_info(info, i))
+            episode_return[done] = 0.0
+            episode_length[done] = 0
+            # Finished envs start a new recorded episode only while the budget is not reached.
+            recording[done] &= recorded_steps < min_steps
+            # Every finished env is reset (idle ones too: a finished env must not be stepped).
+            next_obs, _ = envs.reset(seed=run.reset_seeds(done), options={"reset_mask": done})
+        obs = next_obs
+        t += 1
+
+    mask = storage.recorded[:t]
+    returns = reward_to_go(storage.rewards[:t], storage.dones[:t], hp.gamma)
+    batch = EpisodeBatch(
+        obs=torch.as_tensor(storage.obs[:t][mask], device=run.device),
+        actions=torch.as_tensor(storage.actions[:t][mask], device=run.device),
+        returns=torch.as_tensor(returns[mask], device=run.device),
+    )
+    return batch, recorded_steps
+
+
+def update(policy: Policy, optimizer: torch.optim.Optimizer, batch: EpisodeBatch, hp: Params) -> dict[str, float]:
+    """One gradient step on the REINFORCE loss; returns the logged losses."""
+    weights = torch.as_tensor(advantage_weights(batch.returns.cpu().numpy(), hp.advantage), device=batch.returns.device)
+    dist = policy.distribution(batch.obs)
+    pg_loss = policy_gradient_loss(dist.log_prob(batch.actions), weights)
+    entropy = dist.entropy().mean()
+    loss = pg_loss - hp.ent_coef * entropy
+    optimizer.zero_grad()
+    loss.backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), hp.max_grad_norm if hp.max_grad_norm > 0 else float("inf"))
+    optimizer.step()
+    return {"loss/policy": pg_loss.item(), "loss/entropy": entropy.item(), "loss/grad_norm": grad_norm.item(),
+            "batch/return_to_go_mean": batch.returns.mean().item()}
+
+
+def train(cfg: TrainConfig, run: Run) -> None:
+    hp: Params = cfg.algo_params
+    obs_space, act_space = env_spaces(cfg.env)
+    policy = build_policy(cfg, obs_space, act_space).to(run.device)
+    optimizer = torch.optim.Adam(policy.parameters(), lr=hp.lr)
+    run.restore({"policy": policy}, {"policy": optimizer})
+    modules, optimizers = {"policy": policy}, {"policy": optimizer}
+    run.checkpoint_if_due(modules, optimizers)  # the initial policy, for before/after comparisons
+
+    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED)
+    storage = RolloutStorage(2 * -(-hp.batch_steps // envs.num_envs), envs.num_envs, obs_space, act_space)
+    try:
+        while not run.done:
+            started = time.perf_counter()
+            batch, steps = collect_episodes(envs, policy, storage, hp.batch_steps, run)
+            collected = time.perf_counter()
+            losses = update(policy, optimizer, batch, hp)
+            updated = time.perf_counter()
+            run.iteration += 1
+            run.advance(steps)
+            run.log({**losses, "perf/collect_s": collected - started, "perf/update_s": updated - collected,
+                     "batch/steps": steps})
+            run.checkpoint_if_due(modules, optimizers)
+    finally:
+        envs.close()

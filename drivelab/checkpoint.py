@@ -1,0 +1,154 @@
+"""Safe checkpoints: tensors in safetensors, everything else in JSON. No pickle anywhere.
+
+A checkpoint is a directory ``RUN_DIR/checkpoints/step_<12 digits>/`` holding
+
+* ``tensors.safetensors``: module weights (``module/<name>/<param>``), optimiser tensors
+  (``optim/<name>/<param index>/<key>``) and RNG states (``rng/torch``);
+* ``state.json``: step, resolved config, optimiser hyper-parameters, numpy RNG states, and
+  whatever small state the trainer adds.
+
+It is written into a temporary directory and renamed into place, so a run killed mid-write
+never leaves a half checkpoint behind: the latest complete one is always loadable.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from drivelab.errors import DrivelabError
+
+_STEP_DIR = re.compile(r"^step_(\d{12})$")
+
+
+@dataclass
+class Checkpoint:
+    path: Path
+    tensors: dict[str, torch.Tensor]
+    state: dict[str, Any]
+
+    @property
+    def step(self) -> int:
+        return int(self.state["step"])
+
+
+def optimizer_to_flat(name: str, optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict]:
+    """Split an optimiser state_dict into safetensors-able tensors and JSON-able rest."""
+    sd = optimizer.state_dict()
+    tensors: dict[str, torch.Tensor] = {}
+    scalars: dict[str, dict[str, Any]] = {}
+    for index, param_state in sd["state"].items():
+        for key, value in param_state.items():
+            if torch.is_tensor(value):
+                tensors[f"optim/{name}/{index}/{key}"] = value.detach().cpu().contiguous()
+            else:
+                scalars.setdefault(str(index), {})[key] = value
+    return tensors, {"param_groups": sd["param_groups"], "scalars": scalars}
+
+
+def optimizer_from_flat(name: str, optimizer: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], meta: dict) -> None:
+    state: dict[int, dict[str, Any]] = {}
+    prefix = f"optim/{name}/"
+    for key, value in tensors.items():
+        if key.startswith(prefix):
+            index, field = key[len(prefix):].split("/", 1)
+            state.setdefault(int(index), {})[field] = value
+    for index, fields in meta["scalars"].items():
+        state.setdefault(int(index), {}).update(fields)
+    optimizer.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+
+
+def save_checkpoint(run_dir: str | Path, step: int, *, modules: dict[str, nn.Module],
+                    optimizers: dict[str, torch.optim.Optimizer] | None = None,
+                    tensors: dict[str, torch.Tensor] | None = None, state: dict[str, Any] | None = None,
+                    keep: int = 3) -> Path:
+    """Write a checkpoint atomically and prune old ones (the step-0 checkpoint is always kept,
+    for before/after comparisons). Returns its directory."""
+    root = Path(run_dir) / "checkpoints"
+    root.mkdir(parents=True, exist_ok=True)
+    flat: dict[str, torch.Tensor] = {}
+    for name, module in modules.items():
+        for key, value in module.state_dict().items():
+            flat[f"module/{name}/{key}"] = value.detach().cpu().contiguous()
+    optim_meta = {}
+    for name, optimizer in (optimizers or {}).items():
+        optim_tensors, optim_meta[name] = optimizer_to_flat(name, optimizer)
+        flat.update(optim_tensors)
+    for key, value in (tensors or {}).items():
+        flat[key] = value.detach().cpu().contiguous()
+    flat["rng/torch"] = torch.get_rng_state()
+    full_state = {"step": int(step), "optimizers": optim_meta, **(state or {})}
+
+    final = root / f"step_{step:012d}"
+    tmp = root / f".tmp_step_{step:012d}_{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    save_file(flat, str(tmp / "tensors.safetensors"))
+    with open(tmp / "state.json", "w") as f:
+        json.dump(full_state, f, indent=1)
+        f.flush()
+        os.fsync(f.fileno())
+    if final.exists():
+        shutil.rmtree(final)
+    os.replace(tmp, final)
+
+    kept = [p for p in list_checkpoints(run_dir) if not p.name.endswith("000000000000")]
+    for old in kept[:-keep]:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def list_checkpoints(run_dir: str | Path) -> list[Path]:
+    root = Path(run_dir) / "checkpoints"
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.iterdir() if _STEP_DIR.match(p.name) and (p / "state.json").is_file())
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """A checkpoint directory, or a run directory (-> its latest checkpoint)."""
+    path = Path(path)
+    if (path / "state.json").is_file() and (path / "tensors.safetensors").is_file():
+        return path
+    if not path.exists():
+        raise DrivelabError(f"checkpoint or run directory not found: {path}")
+    found = list_checkpoints(path)
+    if not found:
+        raise DrivelabError(f"no checkpoint found in {path}")
+    return found[-1]
+
+
+def load_checkpoint(path: str | Path) -> Checkpoint:
+    path = resolve_checkpoint(path)
+    try:
+        tensors = load_file(str(path / "tensors.safetensors"))
+        state = json.loads((path / "state.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise DrivelabError(f"checkpoint {path} is unreadable: {exc}") from None
+    return Checkpoint(path=path, tensors=tensors, state=state)
+
+
+def restore(ckpt: Checkpoint, modules: dict[str, nn.Module],
+            optimizers: dict[str, torch.optim.Optimizer] | None = None, rng: bool = True) -> None:
+    """Load module weights, optimiser states and the torch RNG from a checkpoint."""
+    for name, module in modules.items():
+        prefix = f"module/{name}/"
+        weights = {k[len(prefix):]: v for k, v in ckpt.tensors.items() if k.startswith(prefix)}
+        try:
+            module.load_state_dict(weights)
+        except RuntimeError as exc:
+            first = str(exc).strip().splitlines()[0]
+            raise DrivelabError(f"checkpoint {ckpt.path} does not fit the '{name}' network: {first}") from None
+    for name, optimizer in (optimizers or {}).items():
+        optimizer_from_flat(name, optimizer, ckpt.tensors, ckpt.state["optimizers"][name])
+    if rng:
+        torch.set_rng_state(ckpt.tensors["rng/torch"])

@@ -1,0 +1,193 @@
+"""The ``drivelab`` command.
+
+    drivelab train --algo reinforce --env CartPole-v1 --steps 20000 --seed 0 --run-dir runs/cartpole
+    drivelab train --config configs/reinforce_metadrive.yaml --reinforce.lr 0.001 --env.kwargs.num_scenarios 10
+    drivelab train --resume runs/cartpole --steps 40000
+    drivelab eval runs/cartpole --episodes 10 [--env MetaDrive-validation-v0] [--json]
+
+Any config field can be set with a dotted flag (``--env.num_envs 4``, ``--reinforce.gamma 0.95``);
+values are read as YAML scalars (``3x3`` stays text, ``[64, 64]`` is a list, ``null`` is None).
+Bad input ends with one line on stderr and exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from drivelab.errors import DrivelabError
+
+# Fields that may change when a run is resumed; anything else would change the experiment.
+RESUMABLE_FIELDS = ("steps", "torch_threads", "checkpoint_every", "keep_checkpoints", "stats_window", "device", "track")
+
+
+def parse_value(text: str) -> Any:
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+    if isinstance(value, str):  # YAML 1.1 reads 1e-3 as text
+        try:
+            return float(value) if any(c in value for c in ".eE") else int(value)
+        except ValueError:
+            return value
+    return value
+
+
+def parse_overrides(tokens: list[str]) -> dict[str, Any]:
+    """['--a.b', '1', '--c=x'] -> {'a.b': 1, 'c': 'x'}."""
+    overrides: dict[str, Any] = {}
+    i = 0
+    while i < len(tokens):
+        token = tokens[i]
+        if not token.startswith("--") or len(token) == 2:
+            raise DrivelabError(f"unexpected argument {token!r}")
+        key, eq, value = token[2:].partition("=")
+        if not eq:
+            if i + 1 >= len(tokens) or tokens[i + 1].startswith("--"):
+                raise DrivelabError(f"option --{key} needs a value")
+            value = tokens[i + 1]
+            i += 1
+        key = ".".join(part if part == "kwargs" else part.replace("-", "_") for part in key.split("."))
+        overrides[key] = parse_value(value)
+        i += 1
+    return overrides
+
+
+def _train_parser(sub) -> None:
+    p = sub.add_parser("train", help="train an agent", description="Train an agent. Any config field can be set with --section.field VALUE.")
+    p.add_argument("--config", help="YAML config file")
+    p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest checkpoint")
+    p.add_argument("--algo", help="algorithm (reinforce)")
+    p.add_argument("--env", help="Gymnasium env id, e.g. CartPole-v1 or MetaDrive-10env-v0")
+    p.add_argument("--steps", type=int, help="total env steps to train for")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--run-dir", help="where to write logs and checkpoints (default runs/<algo>-<env>-s<seed>-<time>)")
+    p.add_argument("--num-envs", type=int, help="parallel environments")
+    p.add_argument("--actions", metavar="NxM", help="discretise [steering, throttle] into N x M actions (env.action_grid)")
+    p.add_argument("--mlflow", action="store_true", help="also track with MLflow")
+    p.add_argument("--mlflow-uri", help="MLflow tracking URI (default: a local store in the run directory)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _eval_parser(sub) -> None:
+    p = sub.add_parser("eval", help="evaluate a checkpoint or a run's latest checkpoint")
+    p.add_argument("path", help="run directory or checkpoint directory")
+    p.add_argument("--episodes", type=int, default=10)
+    p.add_argument("--env", help="evaluate on another env id (the training env's kwargs are then dropped)")
+    p.add_argument("--env-kwarg", action="append", default=[], metavar="KEY=VALUE", help="env keyword override (repeatable)")
+    p.add_argument("--num-envs", type=int, help="parallel environments (default: as in training)")
+    p.add_argument("--seed", type=int, default=0, help="episode k is reset with seed SEED+k")
+    p.add_argument("--stochastic", action="store_true", help="sample actions instead of taking the mode")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="drivelab", description="Reinforcement learning for driving simulators.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    _train_parser(sub)
+    _eval_parser(sub)
+    sub.add_parser("envs", help="list drivelab's MetaDrive env ids")
+    return parser
+
+
+def _train_data(args: argparse.Namespace, extra: dict[str, Any]) -> tuple[dict, bool]:
+    from drivelab.config import read_yaml, set_dotted
+
+    flags = {
+        "algo": args.algo, "env.id": args.env, "steps": args.steps, "seed": args.seed, "run_dir": args.run_dir,
+        "env.num_envs": args.num_envs, "env.action_grid": args.actions,
+        "track.mlflow": True if args.mlflow else None, "track.mlflow_uri": args.mlflow_uri,
+    }
+    overrides = {k: v for k, v in flags.items() if v is not None} | extra
+    if args.resume:
+        if args.config:
+            raise DrivelabError("--resume continues a run with its saved config; do not pass --config")
+        config_path = Path(args.resume) / "config.yaml"
+        if not config_path.is_file():
+            raise DrivelabError(f"not a drivelab run directory (no config.yaml): {args.resume}")
+        data = read_yaml(config_path)
+        for key in overrides:
+            if key.split(".")[0] not in RESUMABLE_FIELDS and not (key == "run_dir" and overrides[key] == args.resume):
+                raise DrivelabError(f"--resume keeps the run's config; '{key}' cannot change (allowed: {', '.join(RESUMABLE_FIELDS)})")
+        data["run_dir"] = args.resume
+    else:
+        data = read_yaml(args.config) if args.config else {}
+    for key, value in overrides.items():
+        set_dotted(data, key, value)
+    return data, bool(args.resume)
+
+
+def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
+    from drivelab.config import build_config
+    from drivelab.run import train
+
+    data, resume = _train_data(args, extra)
+    cfg = build_config(data)
+    run_dir = train(cfg, resume=resume, progress=not args.no_progress)
+    print(f"run saved in {run_dir} (config.yaml, metrics.csv, tb/, checkpoints/)")
+    print(f"  evaluate: drivelab eval {run_dir} --episodes 10    watch: tensorboard --logdir {run_dir}/tb")
+    return 0
+
+
+def format_eval(summary: dict, env_id: str, checkpoint: Path) -> str:
+    rows = [f"evaluation of {checkpoint} on {env_id}: {summary['episodes']} episodes",
+            f"  {'return':<18}{summary['return_mean']:10.2f} ± {summary['return_std']:.2f}",
+            f"  {'episode length':<18}{summary['length_mean']:10.1f}"]
+    labels = {"success_rate": "success rate", "crash_rate": "crash rate", "out_of_road_rate": "out-of-road rate",
+              "route_completion": "route completion"}
+    rows += [f"  {label:<18}{100 * summary[key]:9.1f} %" for key, label in labels.items() if key in summary]
+    return "\n".join(rows)
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from drivelab.evaluate import evaluate_checkpoint
+
+    kwargs = {}
+    for item in args.env_kwarg:
+        key, eq, value = item.partition("=")
+        if not eq or not key:
+            raise DrivelabError(f"--env-kwarg expects KEY=VALUE, got {item!r}")
+        kwargs[key] = parse_value(value)
+    result, env_cfg, ckpt = evaluate_checkpoint(args.path, args.episodes, args.env, kwargs, args.num_envs,
+                                                args.seed, deterministic=not args.stochastic)
+    summary = result.summary()
+    if args.json:
+        print(json.dumps({**summary, "env": env_cfg.id, "checkpoint": str(ckpt), "step": int(ckpt.name.split("_")[-1])}))
+    else:
+        print(format_eval(summary, env_cfg.id, ckpt))
+    return 0
+
+
+def cmd_envs() -> int:
+    from drivelab.envs.registration import metadrive_ids
+
+    print("\n".join(metadrive_ids()))
+    print("(and any Gymnasium id: CartPole-v1, LunarLander-v3, CarRacing-v3, ...)")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    run_dir = getattr(args, "resume", None) or getattr(args, "run_dir", None)
+    try:
+        if args.command == "train":
+            code = cmd_train(args, parse_overrides(unknown))
+        else:
+            if unknown:
+                parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+            code = cmd_eval(args) if args.command == "eval" else cmd_envs()
+    except DrivelabError as exc:
+        print(f"drivelab: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        hint = f"; continue with: drivelab train --resume {run_dir}" if run_dir else ""
+        print(f"\ndrivelab: interrupted{hint}", file=sys.stderr)
+        sys.exit(130)
+    sys.exit(code)

@@ -1,0 +1,186 @@
+"""Typed run configuration: dataclasses, filled from defaults <- YAML file <- CLI overrides.
+
+A config file looks like the one saved in every run directory (``config.yaml``)::
+
+    algo: reinforce
+    steps: 200000
+    seed: 0
+    env: {id: MetaDrive-10env-v0, num_envs: 2, action_grid: 3x3, kwargs: {traffic_density: 0.1}}
+    reinforce: {lr: 0.003, gamma: 0.99}      # the section named after `algo`
+
+Unknown or ill-typed fields are reported as one-line :class:`DrivelabError` naming the field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import dacite
+import yaml
+
+from drivelab.errors import DrivelabError
+
+
+@dataclass
+class EnvConfig:
+    id: str = "CartPole-v1"
+    num_envs: int = 4
+    # auto | sync | async; auto puts MetaDrive (one engine per process) in subprocesses.
+    vectorization: str = "auto"
+    # "NxM": N steering x M throttle discrete actions over a [steering, throttle] Box action.
+    action_grid: str | None = None
+    max_steering: float = 0.6
+    # keyword overrides for gym.make, e.g. MetaDrive's {num_scenarios: 10, traffic_density: 0.2}
+    kwargs: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class TrackConfig:
+    mlflow: bool = False
+    # None: a local store inside the run directory (RUN_DIR/mlruns).
+    mlflow_uri: str | None = None
+    experiment: str = "drivelab"
+
+
+@dataclass
+class TrainConfig:
+    algo: str = "reinforce"
+    env: EnvConfig = field(default_factory=EnvConfig)
+    steps: int = 100_000
+    seed: int = 0
+    run_dir: str | None = None
+    # Intra-op threads for torch. 1 is fastest when env subprocesses share a few cores.
+    torch_threads: int = 1
+    device: str = "cpu"
+    checkpoint_every: int = 50_000
+    keep_checkpoints: int = 3
+    # Episodes in the recent-return window (progress bar and logged means).
+    stats_window: int = 20
+    track: TrackConfig = field(default_factory=TrackConfig)
+    # Hyperparameters of `algo`: an instance of that algorithm's dataclass (its section in YAML).
+    algo_params: Any = None
+
+
+def _coerce_float(value: Any) -> Any:
+    # YAML and CLI write 1 or 1e3 for floats; accept ints (not bools) where a float is expected.
+    return float(value) if isinstance(value, int) and not isinstance(value, bool) else value
+
+
+_DACITE = dacite.Config(strict=True, type_hooks={float: _coerce_float})
+
+
+def _from_dict(cls: type, data: dict, where: str) -> Any:
+    if not isinstance(data, dict):
+        raise DrivelabError(f"{where}: expected a mapping, got {type(data).__name__}")
+    try:
+        return dacite.from_dict(cls, data, config=_DACITE)
+    except dacite.UnexpectedDataError as exc:
+        names = ", ".join(sorted(exc.keys))
+        raise DrivelabError(f"{where}: unknown field(s) {names}") from None
+    except dacite.WrongTypeError as exc:
+        raise DrivelabError(
+            f"{where}: field '{exc.field_path}' expects {_type_name(exc.field_type)}, got {exc.value!r}"
+        ) from None
+    except dacite.DaciteError as exc:
+        raise DrivelabError(f"{where}: {exc}") from None
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def set_dotted(data: dict, dotted: str, value: Any) -> None:
+    """data["a"]["b"] = value for dotted == "a.b", creating intermediate mappings."""
+    keys = dotted.split(".")
+    node = data
+    for key in keys[:-1]:
+        child = node.get(key)
+        if child is None:
+            child = node[key] = {}
+        if not isinstance(child, dict):
+            raise DrivelabError(f"config field '{dotted}': '{key}' is not a section")
+        node = child
+    node[keys[-1]] = value
+
+
+def read_yaml(path: str | Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise DrivelabError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark else ""
+        raise DrivelabError(f"config file {path}{where}: invalid YAML ({getattr(exc, 'problem', exc)})") from None
+    if not isinstance(data, dict):
+        raise DrivelabError(f"config file {path}: expected a mapping of fields at the top level")
+    return data
+
+
+def build_config(data: dict, where: str = "config") -> TrainConfig:
+    """Validate a nested dict (YAML file + overrides) into a TrainConfig.
+
+    The algorithm's hyperparameters come from the section named after ``algo``.
+    """
+    from drivelab.algos import get_algo
+
+    data = dict(data)
+    algo = data.get("algo", TrainConfig.algo)
+    spec = get_algo(algo)
+    params = data.pop(algo, None) or {}
+    from drivelab.algos import ALGOS
+
+    stray = [name for name in ALGOS if name in data]
+    if stray:
+        raise DrivelabError(f"{where}: section '{stray[0]}' does not apply to algo '{algo}'")
+    if "algo_params" in data:
+        raise DrivelabError(f"{where}: unknown field(s) algo_params (use a section named '{algo}')")
+    cfg = _from_dict(TrainConfig, data, where)
+    cfg.algo_params = _from_dict(spec.params, params, f"{where} section '{algo}'")
+    _validate(cfg)
+    return cfg
+
+
+def _validate(cfg: TrainConfig) -> None:
+    checks = [
+        ("steps", cfg.steps >= 0, "must be >= 0"),
+        ("env.num_envs", cfg.env.num_envs >= 1, "must be >= 1"),
+        ("torch_threads", cfg.torch_threads >= 1, "must be >= 1"),
+        ("checkpoint_every", cfg.checkpoint_every >= 1, "must be >= 1"),
+        ("keep_checkpoints", cfg.keep_checkpoints >= 1, "must be >= 1"),
+        ("stats_window", cfg.stats_window >= 1, "must be >= 1"),
+        ("env.vectorization", cfg.env.vectorization in ("auto", "sync", "async"), "must be auto, sync or async"),
+        ("device", cfg.device == "cpu" or cfg.device.startswith("cuda"), "must be cpu or cuda[:N]"),
+    ]
+    for name, ok, message in checks:
+        if not ok:
+            raise DrivelabError(f"config field '{name}' {message}")
+    if cfg.env.action_grid is not None:
+        from drivelab.envs.wrappers import parse_grid
+
+        parse_grid(cfg.env.action_grid)
+    if hasattr(cfg.algo_params, "validate"):
+        cfg.algo_params.validate()
+
+
+def config_to_dict(cfg: TrainConfig) -> dict:
+    """The resolved config as plain data, with the hyperparameters under the algorithm's name."""
+    data = dataclasses.asdict(dataclasses.replace(cfg, algo_params=None))
+    data.pop("algo_params")
+    data[cfg.algo] = dataclasses.asdict(cfg.algo_params)
+    return data
+
+
+def save_config(cfg: TrainConfig, path: str | Path) -> None:
+    Path(path).write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+
+
+def load_run_config(run_dir: str | Path) -> TrainConfig:
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        raise DrivelabError(f"not a drivelab run directory (no config.yaml): {run_dir}")
+    return build_config(read_yaml(path), where=str(path))

@@ -1,0 +1,104 @@
+"""Environments: one factory for single and vectorised envs from an id and keyword overrides.
+
+Any registered Gymnasium id works (``CartPole-v1``, ``LunarLander-v3``, ...), plus drivelab's
+MetaDrive ids (see :mod:`drivelab.envs.registration`).
+"""
+
+from __future__ import annotations
+
+import difflib
+import functools
+from typing import TYPE_CHECKING, Any
+
+import gymnasium as gym
+from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
+
+from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs
+from drivelab.envs.wrappers import DiscreteActionGrid, parse_grid
+from drivelab.errors import DrivelabError
+
+if TYPE_CHECKING:
+    from drivelab.config import EnvConfig
+
+__all__ = ["make_env", "make_vector_env", "env_spaces", "DiscreteActionGrid", "metadrive_ids", "needs_own_process"]
+
+
+def _check_id(env_id: str) -> None:
+    register_envs()
+    if env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
+        hint = f" (did you mean {', '.join(close)}?)" if close else ""
+        raise DrivelabError(f"unknown env id '{env_id}'{hint}")
+
+
+def make_env(env_id: str, kwargs: dict[str, Any] | None = None, action_grid: str | None = None,
+             max_steering: float = 0.6, render_mode: str | None = None) -> gym.Env:
+    """Build one environment.
+
+    Args:
+        env_id: a registered Gymnasium id.
+        kwargs: keyword overrides for ``gym.make`` (for MetaDrive: any MetaDrive config key,
+            e.g. ``{"num_scenarios": 10, "traffic_density": 0.2}``).
+        action_grid: ``"NxM"`` turns a ``[steering, throttle]`` Box action into N x M discrete
+            actions (:class:`DiscreteActionGrid`).
+        max_steering: steering magnitude of the outermost grid columns.
+        render_mode: passed to ``gym.make`` (``"rgb_array"`` for videos).
+    """
+    _check_id(env_id)
+    try:
+        env = gym.make(env_id, render_mode=render_mode, **(kwargs or {}))
+    except DrivelabError:
+        raise
+    except (TypeError, ValueError, KeyError, AssertionError, gym.error.Error) as exc:
+        message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DrivelabError(f"env '{env_id}' could not be created with kwargs {kwargs or {}}: {message}") from None
+    if action_grid:
+        steering_bins, throttle_bins = parse_grid(action_grid)
+        env = DiscreteActionGrid(env, steering_bins, throttle_bins, max_steering=max_steering)
+    return env
+
+
+def _env_fn(cfg: EnvConfig, render_mode: str | None):
+    return functools.partial(make_env, cfg.id, dict(cfg.kwargs), cfg.action_grid, cfg.max_steering, render_mode)
+
+
+def env_spaces(cfg: EnvConfig) -> tuple[gym.Space, gym.Space]:
+    """(observation_space, action_space) of one env, after drivelab's wrappers.
+
+    Builds the env in this process without resetting it; for MetaDrive this starts no engine.
+    """
+    env = _env_fn(cfg, None)()
+    try:
+        return env.observation_space, env.action_space
+    finally:
+        env.close()
+
+
+def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
+                    autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP,
+                    render_mode: str | None = None) -> VectorEnv:
+    """Build ``num_envs`` (default ``cfg.num_envs``) copies of the env as a Gymnasium vector env.
+
+    ``cfg.vectorization`` picks the backend: ``"sync"`` steps the envs in this process (best for
+    cheap envs such as CartPole), ``"async"`` runs one subprocess per env. ``"auto"`` chooses async
+    for simulators that allow only one instance per process (MetaDrive) and sync otherwise.
+    Subprocesses are started with ``spawn`` so no simulator or torch state leaks into them.
+
+    ``autoreset_mode`` is passed through; each trainer chooses it deliberately (Gymnasium 1.x
+    defaults to NEXT_STEP: the step after an episode ends only resets and ignores its action).
+    """
+    num_envs = cfg.num_envs if num_envs is None else num_envs
+    if num_envs < 1:
+        raise DrivelabError(f"config field 'env.num_envs' must be >= 1, got {num_envs}")
+    _check_id(cfg.id)
+    mode = cfg.vectorization
+    if mode == "auto":
+        mode = "async" if needs_own_process(cfg.id) else "sync"
+    if mode == "sync" and needs_own_process(cfg.id):
+        raise DrivelabError(f"config field 'env.vectorization': '{cfg.id}' allows one instance per process; use 'async' or 'auto'")
+    fns = [_env_fn(cfg, render_mode) for _ in range(num_envs)]
+    if mode == "sync":
+        return SyncVectorEnv(fns, autoreset_mode=autoreset_mode)
+    if mode == "async":
+        return AsyncVectorEnv(fns, context="spawn", autoreset_mode=autoreset_mode)
+    raise DrivelabError(f"config field 'env.vectorization' must be auto, sync or async, got {mode!r}")

@@ -1,0 +1,171 @@
+"""MetaDrive behind the Gymnasium API, offline and headless.
+
+What this adapter adds to ``metadrive.MetaDriveEnv``:
+
+* **Offline.** MetaDrive downloads a 3D asset pack into its own site-packages folder the first
+  time an engine starts. Physics, lidar/state observations and the pygame top-down renderer use
+  none of it, so drivelab turns the download off (nothing is written into site-packages) and
+  raises a one-line error if something that needs the pack is asked for (the 3D window, camera
+  observations) while it is missing.
+* **Gymnasium seeding.** ``reset(seed=k)`` selects scenario ``start_seed + k % num_scenarios``,
+  so equal seeds give equal scenarios (evaluation on seeds 0..99 visits 100 distinct scenarios);
+  ``reset()`` draws the scenario from the env's own seeded RNG. MetaDrive alone draws it from an
+  unseeded global RNG, which makes runs irreproducible.
+* **A step limit.** MetaDrive 0.4.3 has no horizon by default, so a car that stands still never
+  ends its episode. drivelab sets ``horizon=1000`` (MetaDrive's later default); reaching it is
+  reported as ``truncated``, never ``terminated``.
+* **A lean, stable ``info``** (MetaDrive's full dict costs time in vector envs at every step):
+  ``success``, ``crash`` and ``out_of_road`` (did it happen in this episode so far),
+  ``route_completion`` (0..1), ``cost``, ``speed`` (m/s) and ``scenario``. Pass ``full_info=True`` for
+  MetaDrive's own dict as well.
+
+Only one MetaDrive engine can live in a process: build vector envs with
+:func:`drivelab.envs.make_vector_env`, which puts each one in its own subprocess.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from drivelab.errors import DrivelabError
+
+# drivelab's defaults on top of MetaDrive's: headless, quiet, and a step limit.
+DEFAULTS: dict[str, Any] = {"use_render": False, "horizon": 1000, "log_level": logging.ERROR}
+
+# Keys of the lean info dict that evaluation and tracking read at the end of an episode.
+EPISODE_INFO_KEYS = ("success", "crash", "out_of_road", "route_completion")
+
+
+def asset_dir() -> str:
+    from metadrive.engine.asset_loader import AssetLoader
+
+    return str(AssetLoader.asset_path)
+
+
+def assets_installed() -> bool:
+    return os.path.exists(os.path.join(asset_dir(), "version.txt"))
+
+
+def _needs_3d_assets(config: dict) -> str | None:
+    """Name of the requested feature that needs the 3D asset pack, or None."""
+    if config.get("use_render"):
+        return "the 3D window (use_render=True)"
+    if config.get("image_observation"):
+        return "camera observations (image_observation=True)"
+    if config.get("render_pipeline"):
+        return "the render pipeline (render_pipeline=True)"
+    for name, sensor in (config.get("sensors") or {}).items():
+        cls = sensor[0] if isinstance(sensor, (tuple, list)) and sensor else sensor
+        if "camera" in str(getattr(cls, "__name__", cls)).lower():
+            return f"the camera sensor '{name}'"
+    return None
+
+
+def _disable_asset_download() -> None:
+    """Stop MetaDrive's engine from fetching its 3D asset pack from the internet on start-up.
+
+    ``BaseEngine.__init__`` calls ``try_pull_asset``, which downloads and unpacks a zip into
+    site-packages whenever the pack is missing or outdated. That fails offline (and writes into
+    the installation). Headless physics does not read the pack, and :class:`MetaDriveGym`
+    refuses, with a clear error, the configurations that would.
+    """
+    from metadrive.engine.base_engine import BaseEngine
+
+    BaseEngine.try_pull_asset = staticmethod(lambda: None)
+
+
+class MetaDriveGym(gym.Env):
+    """A single-agent MetaDrive (or SafeMetaDrive) environment; see the module docstring.
+
+    Args:
+        config: MetaDrive config dict, as in ``gym.make("MetaDrive-validation-v0", config={...})``.
+        render_mode: ``"rgb_array"`` renders MetaDrive's pygame top-down view (no 3D assets needed).
+        safe: use ``SafeMetaDriveEnv`` (the registered ``SafeMetaDrive-*`` ids set this).
+        full_info: also return MetaDrive's full info dict.
+        render_size: (width, height) of ``render()`` images.
+        **overrides: MetaDrive config keys given directly, e.g. ``num_scenarios=10``.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, config: dict | None = None, render_mode: str | None = None, safe: bool = False,
+                 full_info: bool = False, render_size: tuple[int, int] = (400, 400), **overrides: Any):
+        merged = {**DEFAULTS, **(config or {}), **overrides}
+        needs_assets = _needs_3d_assets(merged)
+        if needs_assets and not assets_installed():
+            raise DrivelabError(
+                f"MetaDrive's {needs_assets} needs its 3D asset pack, which is not installed in {asset_dir()}: "
+                "on a machine with internet run `python -m metadrive.pull_asset`; state observations and "
+                "render_mode='rgb_array' (top-down) need no assets"
+            )
+        if render_mode not in (None, "rgb_array"):
+            raise DrivelabError(f"MetaDrive render_mode must be None or 'rgb_array' (top-down), got {render_mode!r}")
+        _disable_asset_download()
+        from metadrive.envs import MetaDriveEnv, SafeMetaDriveEnv
+
+        try:
+            self._env = (SafeMetaDriveEnv if safe else MetaDriveEnv)(merged)
+        except (KeyError, ValueError, AssertionError, TypeError) as exc:
+            raise DrivelabError(f"MetaDrive rejected its config: {exc}") from None
+        self.render_mode = render_mode
+        self.render_size = tuple(render_size)
+        self.full_info = full_info
+        self.start_seed = int(self._env.config["start_seed"])
+        self.num_scenarios = int(self._env.config["num_scenarios"])
+        self.observation_space = self._env.observation_space
+        self.action_space = self._env.action_space
+        self._crashed = False
+        self._left_road = False
+
+    @property
+    def metadrive(self):
+        """The wrapped ``metadrive`` environment (for its agent, lanes and engine)."""
+        return self._env
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if options and "scenario" in options:
+            scenario = int(options["scenario"])
+        elif seed is not None:
+            scenario = self.start_seed + seed % self.num_scenarios
+        else:
+            scenario = self.start_seed + int(self.np_random.integers(self.num_scenarios))
+        obs, info = self._env.reset(seed=scenario)
+        self._crashed = False
+        self._left_road = False
+        return obs, self._info(info, scenario)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self._env.step(action)
+        return obs, float(reward), bool(terminated), bool(truncated), self._info(info, int(self._env.current_seed))
+
+    def _info(self, info: dict, scenario: int) -> dict:
+        self._crashed |= bool(info.get("crash", False))
+        self._left_road |= bool(info.get("out_of_road", False))
+        lean = {
+            "success": bool(info.get("arrive_dest", False)),
+            "crash": self._crashed,
+            "out_of_road": self._left_road,
+            "route_completion": float(info.get("route_completion", 0.0)),
+            "cost": float(info.get("cost", 0.0)),
+            "speed": float(info.get("velocity", 0.0)),  # m/s
+            "scenario": scenario,
+        }
+        if self.full_info:
+            lean["metadrive"] = info
+        return lean
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode != "rgb_array":
+            return None
+        frame = self._env.render(mode="topdown", window=False, screen_size=self.render_size,
+                                 target_agent_heading_up=True)
+        return np.asarray(frame, dtype=np.uint8)
+
+    def close(self) -> None:
+        self._env.close()

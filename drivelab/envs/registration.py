@@ -1,0 +1,60 @@
+"""Gymnasium ids that drivelab registers on import.
+
+MetaDrive 0.4.2 removed the ids that the course notebooks use. drivelab registers them again with
+their historical meaning (scenario = map + traffic, selected by an integer seed):
+
+==========================  ==========  =============  ===================================
+id                          start_seed  num_scenarios  use
+==========================  ==========  =============  ===================================
+MetaDrive-validation-v0     0           1000           evaluation (disjoint from training)
+MetaDrive-10env-v0          1000        10             small training set
+MetaDrive-100envs-v0        1000        100            training set
+MetaDrive-1000envs-v0       1000        1000           large training set
+==========================  ==========  =============  ===================================
+
+``SafeMetaDrive-*`` are the same splits of MetaDrive's safety task (more traffic accidents,
+crashes do not end the episode, a cost signal in ``info["cost"]``).
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+
+METADRIVE_ENTRY_POINT = "drivelab.envs.metadrive:MetaDriveGym"
+
+# (id suffix, start_seed, num_scenarios)
+_METADRIVE_SPLITS = (
+    ("validation-v0", 0, 1000),
+    ("10env-v0", 1000, 10),
+    ("100envs-v0", 1000, 100),
+    ("1000envs-v0", 1000, 1000),
+)
+
+
+def metadrive_ids() -> list[str]:
+    """Every MetaDrive id that drivelab registers."""
+    return [f"{prefix}-{suffix}" for prefix in ("MetaDrive", "SafeMetaDrive") for suffix, _, _ in _METADRIVE_SPLITS]
+
+
+def needs_own_process(env_id: str) -> bool:
+    """True for simulators that allow one instance per process (MetaDrive's engine is a singleton),
+    which must therefore always run in worker subprocesses, even when there is only one."""
+    try:
+        entry_point = gym.spec(env_id).entry_point
+    except gym.error.Error:
+        return False
+    return isinstance(entry_point, str) and (entry_point == METADRIVE_ENTRY_POINT or entry_point.startswith("metadrive"))
+
+
+def register_envs() -> None:
+    """Register drivelab's ids with Gymnasium. Idempotent; the simulators are imported lazily."""
+    for prefix, safe in (("MetaDrive", False), ("SafeMetaDrive", True)):
+        for suffix, start_seed, num_scenarios in _METADRIVE_SPLITS:
+            env_id = f"{prefix}-{suffix}"
+            if env_id in gym.registry:
+                continue
+            gym.register(
+                id=env_id,
+                entry_point=METADRIVE_ENTRY_POINT,
+                kwargs={"start_seed": start_seed, "num_scenarios": num_scenarios, "safe": safe},
+            )

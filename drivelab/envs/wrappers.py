@@ -1,0 +1,57 @@
+"""Action adapters for driving environments whose action is MetaDrive-style [steering, throttle]."""
+
+from __future__ import annotations
+
+import re
+
+import gymnasium as gym
+import numpy as np
+
+from drivelab.errors import DrivelabError
+
+
+def parse_grid(text: str, field: str = "env.action_grid") -> tuple[int, int]:
+    """'3x5' -> (3, 5): steering bins x throttle bins."""
+    match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(text))
+    if not match or int(match[1]) < 1 or int(match[2]) < 1:
+        raise DrivelabError(f"config field '{field}': expected 'NxM' (steering bins x throttle bins), got {text!r}")
+    return int(match[1]), int(match[2])
+
+
+def _levels(bins: int, magnitude: float, single: float) -> np.ndarray:
+    """`bins` evenly spaced values from +magnitude down to -magnitude (one bin -> `single`)."""
+    if bins == 1:
+        return np.array([single])
+    return np.linspace(magnitude, -magnitude, bins)
+
+
+class DiscreteActionGrid(gym.ActionWrapper):
+    """N steering x M throttle discrete actions over a continuous ``[steering, throttle]`` action.
+
+    Index ``i`` maps to ``throttle_levels[i // N]`` and ``steering_levels[i % N]``, with throttle
+    ordered from full forward to full brake and steering from full left (+) to full right (-).
+    The default 3x3 grid therefore keeps the action numbering of notebook 000 (0 = full throttle
+    and left, 1 = full throttle and straight, ..., 8 = full brake and right), but emits the action
+    in the order MetaDrive expects: ``[steering, throttle]`` (the notebook put throttle first,
+    so its "full throttle" action actually steered hard left and never accelerated).
+
+    A single steering bin means "always straight"; a single throttle bin means "fixed throttle
+    ``max_throttle``".
+    """
+
+    def __init__(self, env: gym.Env, steering_bins: int = 3, throttle_bins: int = 3,
+                 max_steering: float = 0.6, max_throttle: float = 1.0):
+        super().__init__(env)
+        space = env.action_space
+        if not (isinstance(space, gym.spaces.Box) and space.shape == (2,)):
+            raise DrivelabError(
+                f"env.action_grid needs a Box(2,) [steering, throttle] action space; {env.spec.id if env.spec else env} has {space}"
+            )
+        steering = _levels(steering_bins, max_steering, 0.0)
+        throttle = _levels(throttle_bins, max_throttle, max_throttle)
+        # table[i] = [steering, throttle] for action i; row-major over (throttle, steering).
+        self.table = np.array([[s, t] for t in throttle for s in steering], dtype=np.float32)
+        self.action_space = gym.spaces.Discrete(len(self.table))
+
+    def action(self, action) -> np.ndarray:
+        return self.table[int(action)]

@@ -1,0 +1,138 @@
+"""What surrounds every trainer's loop: the run directory, seeding, tracking, progress bar,
+checkpoints and resume. The loop itself lives in each ``drivelab/algos/<algo>.py``.
+
+Reproducibility: the torch RNG (action sampling, initialisation) is seeded with ``cfg.seed``; env
+resets take explicit seeds drawn from ``Run.rng``, a numpy Generator seeded with ``cfg.seed``.
+Both RNG states are saved in every checkpoint, so a resumed run continues the same streams.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from drivelab.checkpoint import Checkpoint, load_checkpoint, restore, save_checkpoint
+from drivelab.config import TrainConfig, config_to_dict, save_config
+from drivelab.episodes import EpisodeStats
+from drivelab.errors import DrivelabError
+from drivelab.track import Tracker
+
+
+class Run:
+    """A training run's state and services. Trainers call, in their loop:
+
+    * :meth:`reset_seeds` for the seeds of env resets,
+    * :meth:`restore` once, after building their networks (no-op on a fresh run),
+    * :meth:`advance` after each batch of env steps, :meth:`log` for metrics,
+    * :meth:`checkpoint_if_due` at the end of each iteration (checkpoints are only taken at
+      iteration boundaries, where no episode is in flight, so resume is exact).
+    """
+
+    def __init__(self, cfg: TrainConfig, resume_from: Checkpoint | None = None, progress: bool = True):
+        self.cfg = cfg
+        self.dir = Path(cfg.run_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        save_config(cfg, self.dir / "config.yaml")
+        self.device = torch.device(cfg.device)
+        torch.set_num_threads(cfg.torch_threads)
+        torch.manual_seed(cfg.seed)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.step = 0
+        self.iteration = 0
+        self.stats = EpisodeStats(cfg.stats_window)
+        self._resume_from = resume_from
+        self._last_checkpoint_step = -1
+        if resume_from is not None:
+            self.step = resume_from.step
+            self.iteration = int(resume_from.state.get("iteration", 0))
+            self.rng.bit_generator.state = resume_from.state["numpy_rng"]
+            self._last_checkpoint_step = self.step
+        self.tracker = Tracker(self.dir, cfg, resume_step=self.step if resume_from else None)
+        self.pbar = tqdm(total=cfg.steps, initial=self.step, unit="step", dynamic_ncols=True,
+                         disable=not progress, mininterval=0.5, smoothing=0.1)
+        self._start_time = time.perf_counter()
+        self._start_step = self.step
+
+    def reset_seeds(self, mask: np.ndarray) -> list[int | None]:
+        """Fresh seeds for the envs where ``mask`` is True (None elsewhere), for ``VectorEnv.reset``."""
+        seeds = self.rng.integers(0, 2**31 - 1, size=int(mask.sum()))
+        it = iter(seeds.tolist())
+        return [next(it) if m else None for m in mask]
+
+    def restore(self, modules: dict[str, torch.nn.Module], optimizers: dict[str, torch.optim.Optimizer]) -> dict:
+        """Load weights, optimiser and RNG states when resuming; returns the trainer's saved state."""
+        if self._resume_from is None:
+            return {}
+        restore(self._resume_from, modules, optimizers)
+        return self._resume_from.state.get("trainer", {})
+
+    def advance(self, steps: int) -> None:
+        self.step += int(steps)
+        self.pbar.update(int(steps))
+        means = self.stats.means()
+        if means:
+            self.pbar.set_postfix_str(f"return {means['episode/return']:.2f} (last {len(self.stats.returns)} ep)", refresh=False)
+
+    @property
+    def done(self) -> bool:
+        return self.step >= self.cfg.steps
+
+    def log(self, metrics: dict[str, float]) -> None:
+        elapsed = time.perf_counter() - self._start_time
+        metrics = {**self.stats.means(), **metrics,
+                   "perf/steps_per_s": (self.step - self._start_step) / max(elapsed, 1e-9)}
+        self.tracker.log(self.step, metrics)
+
+    def checkpoint_if_due(self, modules: dict[str, torch.nn.Module], optimizers: dict[str, torch.optim.Optimizer],
+                          trainer_state: dict[str, Any] | None = None, force: bool = False) -> Path | None:
+        due = self._last_checkpoint_step < 0 or self.step >= self._last_checkpoint_step + self.cfg.checkpoint_every
+        if not (due or force or self.done) or self.step == self._last_checkpoint_step:
+            return None
+        self._last_checkpoint_step = self.step
+        state = {
+            "iteration": self.iteration,
+            "numpy_rng": self.rng.bit_generator.state,
+            "config": config_to_dict(self.cfg),
+            "trainer": trainer_state or {},
+        }
+        return save_checkpoint(self.dir, self.step, modules=modules, optimizers=optimizers, state=state,
+                               keep=self.cfg.keep_checkpoints)
+
+    def close(self) -> None:
+        self.pbar.close()
+        self.tracker.close()
+
+
+def default_run_dir(cfg: TrainConfig) -> str:
+    safe_env = cfg.env.id.replace("/", "_")
+    return str(Path("runs") / f"{cfg.algo}-{safe_env}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}")
+
+
+def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path:
+    """Train ``cfg.algo`` on ``cfg.env`` for ``cfg.steps`` env steps (continuing the latest
+    checkpoint in ``cfg.run_dir`` when ``resume``). Returns the run directory."""
+    from drivelab.algos import get_algo
+
+    spec = get_algo(cfg.algo)
+    if cfg.run_dir is None:
+        cfg.run_dir = default_run_dir(cfg)
+    checkpoint = None
+    if resume:
+        checkpoint = load_checkpoint(cfg.run_dir)
+        if checkpoint.step >= cfg.steps:
+            raise DrivelabError(
+                f"run {cfg.run_dir} is already at step {checkpoint.step} >= steps {cfg.steps}; pass a larger --steps to continue"
+            )
+    elif (Path(cfg.run_dir) / "checkpoints").exists():
+        raise DrivelabError(f"run directory {cfg.run_dir} already holds a run; use --resume {cfg.run_dir} or another --run-dir")
+    run = Run(cfg, resume_from=checkpoint, progress=progress)
+    try:
+        spec.train(cfg, run)
+    finally:
+        run.close()
+    return run.dir
