@@ -64,7 +64,10 @@ def optimizer_from_flat(name: str, optimizer: torch.optim.Optimizer, tensors: di
             state.setdefault(int(index), {})[field] = value
     for index, fields in meta["scalars"].items():
         state.setdefault(int(index), {}).update(fields)
-    optimizer.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+    # JSON has no tuples: restore them (e.g. Adam's betas) so the state is exactly as saved.
+    groups = [{k: (v if k == "params" or not isinstance(v, list) else tuple(v)) for k, v in group.items()}
+              for group in meta["param_groups"]]
+    optimizer.load_state_dict({"state": state, "param_groups": groups})
 
 
 def save_checkpoint(run_dir: str | Path, step: int, *, modules: dict[str, nn.Module],

@@ -73,6 +73,8 @@ class Run:
 
     def advance(self, steps: int) -> None:
         self.step += int(steps)
+        if self.step > self.pbar.total:  # the last batch finishes its episodes past `steps`
+            self.pbar.total = self.step
         self.pbar.update(int(steps))
         means = self.stats.means()
         if means:
@@ -130,6 +132,10 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path
             )
     elif (Path(cfg.run_dir) / "checkpoints").exists():
         raise DrivelabError(f"run directory {cfg.run_dir} already holds a run; use --resume {cfg.run_dir} or another --run-dir")
+    # Fail on a bad env id, env kwargs or an unsupported action space before a run directory exists.
+    from drivelab.envs import env_spaces
+
+    spec.build_policy(cfg, *env_spaces(cfg.env))
     run = Run(cfg, resume_from=checkpoint, progress=progress)
     try:
         spec.train(cfg, run)

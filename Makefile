@@ -1,0 +1,38 @@
+# Two entry points (see README): `make demo` and `make test`. Both create .venv/ when missing.
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+BIN    := $(VENV)/bin
+# The CPU build of torch. An unpinned torch from PyPI is a multi-GB CUDA build; this machine kind
+# has torch 2.13.0's CPU wheel locally. Elsewhere, point pip at PyTorch's CPU wheel index.
+TORCH  ?= torch==2.13.0
+DEMO   := runs/demo
+
+.PHONY: demo test test-fast install clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+
+$(VENV)/.installed: pyproject.toml | $(BIN)/python
+	$(BIN)/pip install --quiet "$(TORCH)"
+	$(BIN)/pip install --quiet -e ".[dev]"
+	@touch $@
+
+install: $(VENV)/.installed
+
+demo: install
+	rm -rf $(DEMO)
+	$(BIN)/drivelab train --config configs/reinforce_metadrive.yaml --run-dir $(DEMO)
+	@echo "== before training: the initial policy on the 10 training scenarios =="
+	$(BIN)/drivelab eval $(DEMO)/checkpoints/step_000000000000 --episodes 10
+	@echo "== after training =="
+	$(BIN)/drivelab eval $(DEMO) --episodes 10
+
+test: install
+	$(BIN)/python -m pytest -q --durations=8
+
+test-fast: install
+	$(BIN)/python -m pytest -q -m "not slow"
+
+clean:
+	rm -rf $(VENV) runs

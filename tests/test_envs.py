@@ -1,0 +1,154 @@
+"""Environment layer: registration, MetaDrive offline adapter, action grid, vector envs."""
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.vector import AutoresetMode
+
+import drivelab  # noqa: F401  (registers the ids)
+from drivelab.config import EnvConfig
+from drivelab.envs import make_env, make_vector_env, metadrive_ids
+from drivelab.envs.metadrive import assets_installed
+from drivelab.envs.wrappers import DiscreteActionGrid
+from drivelab.errors import DrivelabError
+
+
+def _metadrive_files() -> set[str]:
+    import metadrive
+
+    root = Path(metadrive.__file__).parent
+    return {str(p.relative_to(root)) for p in root.rglob("*") if "__pycache__" not in p.parts}
+
+
+def test_notebook_ids_are_registered_with_their_historical_meaning():
+    assert set(metadrive_ids()) <= set(gym.registry)
+    expected = {"MetaDrive-validation-v0": (0, 1000), "MetaDrive-10env-v0": (1000, 10),
+                "MetaDrive-100envs-v0": (1000, 100), "MetaDrive-1000envs-v0": (1000, 1000),
+                "SafeMetaDrive-validation-v0": (0, 1000), "SafeMetaDrive-100envs-v0": (1000, 100)}
+    for env_id, (start, count) in expected.items():
+        kwargs = gym.spec(env_id).kwargs
+        assert (kwargs["start_seed"], kwargs["num_scenarios"]) == (start, count), env_id
+
+
+def test_notebook_line_works_offline_with_state_observations_and_time_limit_truncation():
+    before = _metadrive_files()
+    env = gym.make("MetaDrive-validation-v0", config={"use_render": False, "horizon": 25, "traffic_density": 0.0})
+    try:
+        assert env.observation_space.shape == (259,) and isinstance(env.observation_space, gym.spaces.Box)
+        assert env.action_space.shape == (2,) and isinstance(env.action_space, gym.spaces.Box)
+        obs, info = env.reset(seed=7)
+        assert obs.shape == (259,) and info["scenario"] == 7
+        for t in range(25):
+            obs, reward, terminated, truncated, info = env.step(np.zeros(2, np.float32))  # stand still
+            if terminated or truncated:
+                break
+        assert t == 24 and truncated and not terminated, "the step limit is a truncation, not a termination"
+        assert set(info) >= {"success", "crash", "out_of_road", "route_completion", "cost", "speed"}
+        frame = env.unwrapped.render_mode is None and env.unwrapped.metadrive.render(
+            mode="topdown", window=False, screen_size=(64, 64))
+        assert frame.shape == (64, 64, 3)
+    finally:
+        env.close()
+    assert _metadrive_files() == before, "nothing may be written into MetaDrive's installation"
+
+
+def test_seed_selects_scenario_within_the_split():
+    env = gym.make("MetaDrive-10env-v0", traffic_density=0.0)
+    try:
+        assert env.reset(seed=3)[1]["scenario"] == 1003
+        assert env.reset(seed=13)[1]["scenario"] == 1003
+        first = env.reset(seed=5)[0]
+        again = env.reset(seed=5)[0]
+        np.testing.assert_array_equal(first, again)
+    finally:
+        env.close()
+
+
+@pytest.mark.skipif(assets_installed(), reason="MetaDrive's 3D assets are installed here")
+@pytest.mark.parametrize("config", [{"use_render": True}, {"image_observation": True}])
+def test_features_that_need_3d_assets_fail_with_one_clear_line(config):
+    with pytest.raises(DrivelabError) as err:
+        make_env("MetaDrive-validation-v0", {"config": config})
+    message = str(err.value)
+    assert "asset" in message and "pull_asset" in message and "\n" not in message
+
+
+def test_unknown_env_and_bad_kwargs_are_clear_errors():
+    with pytest.raises(DrivelabError, match="unknown env id 'CartPole-v9'.*CartPole-v1"):
+        make_env("CartPole-v9")
+    with pytest.raises(DrivelabError, match="MetaDrive rejected its config"):
+        make_env("MetaDrive-validation-v0", {"no_such_option": 1})
+    with pytest.raises(DrivelabError, match="CartPole-v1"):
+        make_env("CartPole-v1", {"no_such_option": 1})
+
+
+def test_action_grid_table_is_steering_then_throttle():
+    env = DiscreteActionGrid(_BoxEnv(), 3, 3, max_steering=0.6)
+    assert env.action_space == gym.spaces.Discrete(9)
+    np.testing.assert_allclose(env.action(1), [0.0, 1.0])     # full throttle, straight
+    np.testing.assert_allclose(env.action(0), [0.6, 1.0])     # full throttle, left
+    np.testing.assert_allclose(env.action(4), [0.0, 0.0])     # coast
+    np.testing.assert_allclose(env.action(8), [-0.6, -1.0])   # brake, right
+    fixed = DiscreteActionGrid(_BoxEnv(), 5, 1)
+    np.testing.assert_allclose(fixed.table[:, 1], 1.0)         # one throttle bin = fixed throttle
+    np.testing.assert_allclose(fixed.table[:, 0], [0.6, 0.3, 0.0, -0.3, -0.6])
+
+
+class _BoxEnv(gym.Env):
+    observation_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+    action_space = gym.spaces.Box(-1, 1, (2,), np.float32)
+
+
+def test_full_throttle_straight_drives_forward_along_the_lane():
+    env = make_env("MetaDrive-validation-v0", {"traffic_density": 0.0}, action_grid="3x3")
+    try:
+        env.reset(seed=0)
+        agent = env.unwrapped.metadrive.agent
+        lane = agent.lane
+        start_long, start_lat = lane.local_coordinates(agent.position)
+        for _ in range(40):
+            _, _, terminated, truncated, info = env.step(1)
+            assert not (terminated or truncated)
+        long, lat = lane.local_coordinates(agent.position)
+        assert long - start_long > 15.0, "the car must move forward along its lane"
+        assert abs(lat - start_lat) < 0.5, "and stay in it"
+        assert info["speed"] > 5.0 and not info["out_of_road"]
+
+        env.reset(seed=0)
+        lane = env.unwrapped.metadrive.agent.lane
+        start_long, _ = lane.local_coordinates(env.unwrapped.metadrive.agent.position)
+        for _ in range(40):
+            env.step(7)  # full brake, straight: the car does not move forward
+        long, _ = lane.local_coordinates(env.unwrapped.metadrive.agent.position)
+        assert long - start_long < 1.0
+    finally:
+        env.close()
+
+
+def test_metadrive_vector_env_runs_in_subprocesses():
+    cfg = EnvConfig(id="MetaDrive-10env-v0", num_envs=2, action_grid="3x3", kwargs={"horizon": 30})
+    envs = make_vector_env(cfg, autoreset_mode=AutoresetMode.DISABLED)
+    try:
+        assert type(envs).__name__ == "AsyncVectorEnv"
+        obs, _ = envs.reset(seed=[0, 1])
+        assert obs.shape == (2, 259)
+        obs, reward, terminated, truncated, info = envs.step(np.array([1, 1]))
+        assert reward.shape == (2,) and "route_completion" in info
+    finally:
+        envs.close()
+    with pytest.raises(DrivelabError, match="one instance per process"):
+        make_vector_env(EnvConfig(id="MetaDrive-10env-v0", vectorization="sync"))
+
+
+def test_box2d_and_pygame_coexist_with_metadrive():
+    env = gym.make("LunarLander-v3", render_mode="rgb_array")
+    try:
+        env.reset(seed=0)
+        assert env.render().ndim == 3
+    finally:
+        env.close()
+    import pygame
+
+    assert pygame.get_sdl_version()[0] == 2

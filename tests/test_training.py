@@ -1,0 +1,121 @@
+"""End-to-end training: determinism, exact resume, tracking, evaluation, and learning."""
+
+import csv
+import json
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from drivelab.checkpoint import resolve_checkpoint
+from drivelab.config import build_config
+from drivelab.evaluate import evaluate_checkpoint
+from drivelab.run import train
+
+
+def _cartpole(run_dir, steps, **extra):
+    data = {"algo": "reinforce", "steps": steps, "seed": 3, "run_dir": str(run_dir), "checkpoint_every": 1,
+            "env": {"id": "CartPole-v1", "num_envs": 4}, "reinforce": {"batch_steps": 1000, "lr": 0.01}}
+    data.update(extra)
+    return build_config(data)
+
+
+def _weights(run_dir):
+    tensors = load_file(str(resolve_checkpoint(run_dir) / "tensors.safetensors"))
+    return {k: v for k, v in tensors.items() if k.startswith("module/")}
+
+
+def _metrics(run_dir):
+    with open(run_dir / "metrics.csv") as f:
+        return [(r["step"], r["name"], r["value"]) for r in csv.DictReader(f) if not r["name"].startswith("perf/")]
+
+
+def test_same_seed_same_metrics_and_interrupted_run_resumes_exactly(tmp_path):
+    straight, again, split = tmp_path / "straight", tmp_path / "again", tmp_path / "split"
+    train(_cartpole(straight, 6000), progress=False)
+    train(_cartpole(again, 6000), progress=False)
+    assert _metrics(straight) == _metrics(again), "same seed -> identical metrics"
+
+    train(_cartpole(split, 3000), progress=False)          # "killed" after ~3000 steps
+    with open(split / "metrics.csv", "a") as f:            # a row written after the last checkpoint
+        f.write("999999,0,episode/return,1\n")
+    cfg = _cartpole(split, 6000)
+    train(cfg, resume=True, progress=False)
+    a, b = _weights(straight), _weights(split)
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    assert resolve_checkpoint(split).name == resolve_checkpoint(straight).name
+    assert _metrics(split) == _metrics(straight), "the resumed history equals the uninterrupted one"
+    assert list((split / "tb").glob("events.out.tfevents.*"))
+
+
+def test_mlflow_tracking_in_the_run_directory(tmp_path):
+    import mlflow
+
+    run_dir = tmp_path / "ml"
+    train(_cartpole(run_dir, 1000, track={"mlflow": True, "experiment": "drivelab-test"}), progress=False)
+    run_id = (run_dir / "mlflow_run_id").read_text().strip()
+    client = mlflow.MlflowClient(tracking_uri=f"sqlite:///{run_dir / 'mlflow.db'}")
+    run = client.get_run(run_id)
+    assert "episode/return" in run.data.metrics and run.data.params["reinforce.lr"] == "0.01"
+
+
+def test_evaluation_is_deterministic_and_reports_json_keys(tmp_path):
+    train(_cartpole(tmp_path / "r", 2000), progress=False)
+    first, _, _ = evaluate_checkpoint(tmp_path / "r", episodes=5, num_envs=2)
+    second, _, _ = evaluate_checkpoint(tmp_path / "r", episodes=5, num_envs=3)
+    assert first.returns.tolist() == second.returns.tolist(), "episode k's seed does not depend on num_envs"
+    assert set(first.summary()) >= {"return_mean", "return_std", "episodes"} and first.summary()["episodes"] == 5
+
+
+@pytest.mark.slow
+def test_reinforce_solves_cartpole(tmp_path):
+    cfg = build_config({"algo": "reinforce", "steps": 100_000, "seed": 0, "run_dir": str(tmp_path / "cp"),
+                        "env": {"id": "CartPole-v1", "num_envs": 8}, "reinforce": {"lr": 0.01, "batch_steps": 4000}})
+    train(cfg, progress=False)
+    result, _, _ = evaluate_checkpoint(tmp_path / "cp", episodes=20)
+    assert result.summary()["return_mean"] >= 195
+
+
+def test_cli_train_resume_eval_on_metadrive(tmp_path, run_cli):
+    run_dir = tmp_path / "md"
+    common = ["--env.kwargs.horizon", "60", "--env.kwargs.traffic_density", "0.0", "--reinforce.batch_steps", "100"]
+    out = run_cli("train", "--algo", "reinforce", "--env", "MetaDrive-10env-v0", "--actions", "3x3", "--steps", "100",
+                  "--num-envs", "1", "--run-dir", run_dir, "--no-progress", *common)
+    assert out.returncode == 0, out.stderr
+    assert (run_dir / "config.yaml").is_file() and (run_dir / "metrics.csv").is_file()
+    assert list((run_dir / "tb").glob("events.out.tfevents.*"))
+    first = resolve_checkpoint(run_dir)
+    assert (first / "tensors.safetensors").is_file()
+
+    out = run_cli("train", "--resume", run_dir, "--steps", "200", "--no-progress")
+    assert out.returncode == 0, out.stderr
+    assert resolve_checkpoint(run_dir).name > first.name
+
+    out = run_cli("eval", run_dir, "--episodes", "2", "--env", "MetaDrive-validation-v0",
+                  "--env-kwarg", "horizon=60", "--json")
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["episodes"] == 2 and result["env"] == "MetaDrive-validation-v0"
+    for key in ("return_mean", "return_std", "success_rate", "crash_rate", "out_of_road_rate", "route_completion"):
+        assert key in result
+    table = run_cli("eval", run_dir, "--episodes", "1", "--env-kwarg", "horizon=30")
+    assert "route completion" in table.stdout and "out-of-road rate" in table.stdout
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["train", "--algo", "dqn", "--env", "CartPole-v1"], "unknown algorithm 'dqn'"),
+    (["train", "--env", "CartPol-v1"], "unknown env id 'CartPol-v1'"),
+    (["train", "--env", "CartPole-v1", "--reinforce.lrate", "0.1"], "lrate"),
+    (["train", "--config", "missing.yaml"], "missing.yaml"),
+    (["eval", "no/such/run"], "no/such/run"),
+    (["train", "--resume", "no/such/run"], "no/such/run"),
+])
+def test_bad_input_is_one_line_without_traceback(args, fragment, run_cli, tmp_path):
+    out = run_cli(*args, "--steps", "10", "--run-dir", tmp_path / "x") if args[0] == "train" and "--resume" not in args \
+        else run_cli(*args)
+    assert out.returncode == 2
+    assert "Traceback" not in out.stderr
+    lines = [line for line in out.stderr.strip().splitlines() if line]
+    assert len(lines) == 1 and fragment in lines[0], out.stderr
