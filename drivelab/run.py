@@ -64,12 +64,14 @@ class Run:
         it = iter(seeds.tolist())
         return [next(it) if m else None for m in mask]
 
-    def restore(self, modules: dict[str, torch.nn.Module], optimizers: dict[str, torch.optim.Optimizer]) -> dict:
-        """Load weights, optimiser and RNG states when resuming; returns the trainer's saved state."""
+    def restore(self, modules: dict[str, torch.nn.Module], optimizers: dict[str, torch.optim.Optimizer]) -> Checkpoint | None:
+        """When resuming, load weights, optimiser and RNG states and return the checkpoint, whose
+        ``state["trainer"]`` and ``tensors`` hold what the trainer saved itself (e.g. a replay
+        buffer); on a fresh run, return None."""
         if self._resume_from is None:
-            return {}
+            return None
         restore(self._resume_from, modules, optimizers)
-        return self._resume_from.state.get("trainer", {})
+        return self._resume_from
 
     def advance(self, steps: int) -> None:
         self.step += int(steps)
@@ -91,7 +93,11 @@ class Run:
         self.tracker.log(self.step, metrics)
 
     def checkpoint_if_due(self, modules: dict[str, torch.nn.Module], optimizers: dict[str, torch.optim.Optimizer],
-                          trainer_state: dict[str, Any] | None = None, force: bool = False) -> Path | None:
+                          trainer_state: dict[str, Any] | None = None,
+                          tensors: dict[str, torch.Tensor] | None = None, force: bool = False) -> Path | None:
+        """Save a checkpoint when ``checkpoint_every`` steps have passed since the last one, at the
+        end of training, or when forced. ``trainer_state`` (JSON-able) and ``tensors`` are saved
+        alongside and come back from :meth:`restore`."""
         due = self._last_checkpoint_step < 0 or self.step >= self._last_checkpoint_step + self.cfg.checkpoint_every
         if not (due or force or self.done) or self.step == self._last_checkpoint_step:
             return None
@@ -102,8 +108,8 @@ class Run:
             "config": config_to_dict(self.cfg),
             "trainer": trainer_state or {},
         }
-        return save_checkpoint(self.dir, self.step, modules=modules, optimizers=optimizers, state=state,
-                               keep=self.cfg.keep_checkpoints)
+        return save_checkpoint(self.dir, self.step, modules=modules, optimizers=optimizers, tensors=tensors,
+                               state=state, keep=self.cfg.keep_checkpoints)
 
     def close(self) -> None:
         self.pbar.close()
