@@ -186,6 +186,9 @@ def main(argv: list[str] | None = None) -> None:
     except DrivelabError as exc:
         print(f"drivelab: error: {exc}", file=sys.stderr)
         sys.exit(2)
+    except BrokenPipeError:  # output piped into `head` and the like
+        sys.stderr.close()
+        sys.exit(0)
     except KeyboardInterrupt:
         hint = f"; continue with: drivelab train --resume {run_dir}" if run_dir else ""
         print(f"\ndrivelab: interrupted{hint}", file=sys.stderr)

@@ -146,3 +146,43 @@ class Policy(nn.Module):
         if self.discrete:
             return action.cpu().numpy()
         return torch.maximum(torch.minimum(action, self.high), self.low).cpu().numpy()
+
+
+class ActorCritic(nn.Module):
+    """Policy pi(a|s) and, optionally, value V(s), for the on-policy family (A2C, PPO, GRPO).
+
+    Actor and critic have separate encoders (sharing one lets the value loss's scale disturb the
+    policy; Andrychowicz et al. 2021 found separate networks better on continuous control).
+    With ``obs_norm`` both see observations standardised by running statistics that are saved
+    with the weights (vector observations only; images are scaled to [0, 1] by the CNN).
+    """
+
+    def __init__(self, obs_space: gym.Space, act_space: gym.Space, hidden: Sequence[int] = (64, 64),
+                 act: str = "tanh", log_std_init: float = 0.0, obs_norm: bool = False, critic: bool = True):
+        super().__init__()
+        from drivelab.normalize import RunningMeanStd
+
+        self.obs_rms = RunningMeanStd(obs_space.shape) if obs_norm and not is_image_space(obs_space) else None
+        self.actor = Policy(obs_space, act_space, hidden, act, log_std_init)
+        self.discrete = self.actor.discrete
+        self.critic = None
+        if critic:
+            encoder = make_encoder(obs_space, hidden, act)
+            self.critic = nn.Sequential(encoder, layer_init(nn.Linear(encoder.out_dim, 1), gain=1.0))
+
+    def prepare(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.obs_rms.normalize(obs.float()) if self.obs_rms is not None else obs
+
+    def distribution(self, obs: torch.Tensor) -> Distribution:
+        return self.actor.distribution(self.prepare(obs))
+
+    def value(self, obs: torch.Tensor) -> torch.Tensor:
+        """(B,) state values."""
+        return self.critic(self.prepare(obs)).squeeze(-1)
+
+    @torch.no_grad()
+    def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
+        return self.actor.act(self.prepare(obs), deterministic)
+
+    def to_env(self, action: torch.Tensor) -> np.ndarray:
+        return self.actor.to_env(action)

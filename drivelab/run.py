@@ -148,3 +148,12 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path
     finally:
         run.close()
     return run.dir
+
+
+def iteration_timing(started: float, collected: float, updated: float, env_seconds: float) -> dict[str, float]:
+    """Where an iteration's wall time went; ``perf/overhead`` is the share spent neither stepping
+    envs nor in the gradient update (inference, storage, bookkeeping)."""
+    total = updated - started
+    update_seconds = updated - collected
+    return {"perf/env_s": env_seconds, "perf/update_s": update_seconds, "perf/iteration_s": total,
+            "perf/overhead": max(0.0, 1.0 - (env_seconds + update_seconds) / total) if total > 0 else 0.0}

@@ -2,7 +2,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from drivelab.algos.reinforce import advantage_weights, policy_gradient_loss
+from drivelab.algos.reinforce import advantage_weights
+from drivelab.losses import policy_gradient_loss
 from drivelab.nets import Policy
 
 

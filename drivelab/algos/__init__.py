@@ -32,12 +32,13 @@ def _spec(name: str, module: ModuleType) -> AlgoSpec:
 
 
 def _load() -> dict[str, AlgoSpec]:
-    from drivelab.algos import reinforce
+    from drivelab.algos import a2c, grpo, ppo, reinforce
 
-    return {"reinforce": _spec("reinforce", reinforce)}
+    modules = {"reinforce": reinforce, "a2c": a2c, "ppo": ppo, "grpo": grpo}
+    return {name: _spec(name, module) for name, module in modules.items()}
 
 
-ALGOS: tuple[str, ...] = ("reinforce",)
+ALGOS: tuple[str, ...] = ("reinforce", "a2c", "ppo", "grpo")
 
 
 def get_algo(name: str) -> AlgoSpec:

@@ -33,8 +33,10 @@ from drivelab.config import TrainConfig
 from drivelab.envs import env_spaces, make_vector_env
 from drivelab.episodes import episode_info
 from drivelab.errors import DrivelabError
+from drivelab.losses import policy_gradient_loss
 from drivelab.nets import Policy
 from drivelab.returns import normalize, reward_to_go
+from drivelab.rollout import EpisodeStorage
 from drivelab.run import Run
 
 
@@ -75,16 +77,6 @@ def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -
     return Policy(obs_space, act_space, hp.hidden, hp.activation, hp.log_std_init)
 
 
-def policy_gradient_loss(log_prob: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """-(1/B) sum_i log pi(a_i|s_i) * Psi_i: its gradient is minus the policy gradient estimate.
-
-    Args:
-        log_prob: (B,) log-probabilities of the taken actions (differentiable).
-        weights: (B,) Psi, e.g. reward-to-go; treated as a constant.
-    """
-    return -(log_prob * weights.detach()).mean()
-
-
 def advantage_weights(returns: np.ndarray, mode: str) -> np.ndarray:
     """Psi from the (B,) rewards-to-go: as is, minus the batch mean, or standardised."""
     if mode == "rtg":
@@ -94,29 +86,7 @@ def advantage_weights(returns: np.ndarray, mode: str) -> np.ndarray:
     return normalize(returns)
 
 
-class RolloutStorage:
-    """Preallocated (T, N, ...) arrays for one iteration's steps, doubled in T when full."""
-
-    def __init__(self, capacity: int, num_envs: int, obs_space: gym.Space, act_space: gym.Space):
-        act_shape = () if isinstance(act_space, gym.spaces.Discrete) else act_space.shape
-        act_dtype = np.int64 if isinstance(act_space, gym.spaces.Discrete) else np.float32
-        self.obs = np.zeros((capacity, num_envs, *obs_space.shape), obs_space.dtype)
-        self.actions = np.zeros((capacity, num_envs, *act_shape), act_dtype)
-        self.rewards = np.zeros((capacity, num_envs), np.float32)
-        self.dones = np.zeros((capacity, num_envs), bool)
-        self.recorded = np.zeros((capacity, num_envs), bool)
-
-    def ensure(self, t: int) -> None:
-        if t < len(self.rewards):
-            return
-        for name in ("obs", "actions", "rewards", "dones", "recorded"):
-            old = getattr(self, name)
-            grown = np.zeros((2 * len(old), *old.shape[1:]), old.dtype)
-            grown[: len(old)] = old
-            setattr(self, name, grown)
-
-
-def collect_episodes(envs: VectorEnv, policy: Policy, storage: RolloutStorage, min_steps: int,
+def collect_episodes(envs: VectorEnv, policy: Policy, storage: EpisodeStorage, min_steps: int,
                      run: Run) -> tuple[EpisodeBatch, int]:
     """Run whole episodes until at least ``min_steps`` steps are recorded.
 
@@ -193,7 +163,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
     run.checkpoint_if_due(modules, optimizers)  # the initial policy, for before/after comparisons
 
     envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED)
-    storage = RolloutStorage(2 * -(-hp.batch_steps // envs.num_envs), envs.num_envs, obs_space, act_space)
+    storage = EpisodeStorage(2 * -(-hp.batch_steps // envs.num_envs), envs.num_envs, obs_space, act_space)
     try:
         while not run.done:
             started = time.perf_counter()

@@ -1,0 +1,267 @@
+"""GRPO: group relative policy optimisation, critic-free (Shao et al. 2024, DeepSeekMath).
+
+GRPO replaces PPO's learned critic with a comparison inside a *group*: G rollouts that start from
+the same state. A member's advantage is how much better it did than its group,
+
+    A_i = (R_i - mean(R_1..R_G)) / (std(R_1..R_G) + eps)                    (advantage: return)
+
+or, per step, its reward-to-go against the members still running at the same episode step
+(advantage: reward_to_go). Whatever the start state is worth cancels out, which is what a
+critic's baseline is for, without learning one. The policy is then trained with PPO's clipped
+ratio objective plus an optional KL penalty toward the rollout policy.
+
+Design (no public RL library implements same-seed GRPO for Gymnasium envs):
+
+* N envs form N / G groups of G consecutive envs. A group *round* resets its G members with the
+  same seed, so they start from the same state (for MetaDrive, the same scenario: map and
+  traffic; for Gymnasium envs, the same ``reset(seed=...)``). Differences between members come
+  only from the stochastic policy (and any env noise after the start).
+* Members whose episode ends early wait, masked: they are reset (an env that has ended must not
+  be stepped) and keep stepping, but those steps are not recorded. When the last member of a
+  group finishes, the round is complete and the whole group is reset together to a new seed.
+  Groups are independent: a fast group starts its next round without waiting for a slow one.
+* The envs run with ``AutoresetMode.DISABLED``: this loop decides every reset.
+* An update uses every round completed once ``batch_steps`` steps are recorded; no episode is
+  cut, because a return is only comparable to its group's when all are complete.
+
+The group size trades variance against cost: G = 2 gives a noisy baseline, larger G a better
+estimate of the start state's value but fewer distinct start states per batch and more time
+waiting for a group's slowest member. A group whose members all scored the same (e.g. all
+reached CartPole's 500-step limit) has zero advantage and teaches nothing.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium.vector import AutoresetMode, VectorEnv
+
+from drivelab.config import TrainConfig
+from drivelab.envs import env_spaces, make_vector_env
+from drivelab.episodes import episode_info
+from drivelab.errors import DrivelabError
+from drivelab.losses import approx_kl, clipped_surrogate_loss
+from drivelab.nets import ActorCritic
+from drivelab.returns import group_relative_advantages, group_relative_step_advantages, reward_to_go
+from drivelab.rollout import EpisodeStorage
+from drivelab.run import Run, iteration_timing
+
+
+@dataclass
+class Params:
+    group_size: int = 8           # G rollouts per start state; env.num_envs must be a multiple
+    batch_steps: int = 4000       # minimum recorded steps per update (whole rounds on top)
+    advantage: str = "return"     # return | reward_to_go
+    gamma: float = 1.0            # discount of returns / rewards-to-go
+    lr: float = 3e-4
+    anneal_lr: bool = False
+    update_epochs: int = 4
+    num_minibatches: int = 4
+    clip_coef: float = 0.2
+    kl_coef: float = 0.0          # weight of KL(pi_old || pi_theta), the rollout policy
+    ent_coef: float = 0.0
+    max_grad_norm: float = 0.5
+    normalize_obs: bool = False
+    hidden: list[int] = field(default_factory=lambda: [64, 64])
+    activation: str = "tanh"
+    log_std_init: float = 0.0
+
+    def validate(self) -> None:
+        if self.group_size < 2:
+            raise DrivelabError("config field 'grpo.group_size' must be >= 2 (advantages compare members of a group)")
+        if self.advantage not in ("return", "reward_to_go"):
+            raise DrivelabError(f"config field 'grpo.advantage' must be return or reward_to_go, got {self.advantage!r}")
+
+
+class GroupBatch(NamedTuple):
+    """The recorded steps of complete group rounds, flattened (B steps)."""
+    obs: torch.Tensor         # (B, *obs_shape)
+    actions: torch.Tensor     # (B,) or (B, act_dim)
+    log_probs: torch.Tensor   # (B,) log pi_old(a|s)
+    advantages: torch.Tensor  # (B,) group-relative
+
+
+class Round(NamedTuple):
+    group: int
+    seed: int                 # every member was reset with this seed
+    start: int                # storage row of the members' first step
+
+
+def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> ActorCritic:
+    hp = cfg.algo_params
+    return ActorCritic(obs_space, act_space, hp.hidden, hp.activation, hp.log_std_init,
+                       obs_norm=hp.normalize_obs, critic=False)
+
+
+@torch.no_grad()
+def collect_group_rounds(envs: VectorEnv, agent: ActorCritic, storage: EpisodeStorage, hp: Params,
+                         run: Run) -> tuple[list[Round], int, int]:
+    """Play group rounds until ``hp.batch_steps`` steps are recorded and every round is complete.
+
+    Fills ``storage`` rows [0, T): ``tag[t, i]`` is the index (into the returned list) of the
+    round member i was playing at step t, and ``recorded`` marks the steps of those episodes.
+    Returns (rounds, recorded steps, T).
+    """
+    n = envs.num_envs
+    groups = np.arange(n) // hp.group_size        # group of each env
+    rounds: list[Round] = []
+    round_of = np.zeros(n, np.int64)              # the round each env belongs to (or last belonged to)
+    recording = np.zeros(n, bool)                 # its current episode is part of the batch
+    episode_return = np.zeros(n)
+    episode_length = np.zeros(n, np.int64)
+    recorded_steps = 0
+
+    def start_rounds(group_ids: list[int], row: int) -> tuple[np.ndarray, list[int | None]]:
+        """New rounds for ``group_ids`` from storage row ``row``: one fresh seed per group, shared
+        by its members. Returns the envs to reset and their seeds."""
+        mask = np.isin(groups, group_ids)
+        seeds: list[int | None] = [None] * n
+        for g, seed in zip(group_ids, run.reset_seeds(np.ones(len(group_ids), bool))):
+            rounds.append(Round(int(g), seed, row))
+            members = np.flatnonzero(groups == g)
+            round_of[members] = len(rounds) - 1
+            recording[members] = True
+            for i in members:
+                seeds[i] = seed
+        return mask, seeds
+
+    _, seeds = start_rounds(list(range(n // hp.group_size)), 0)
+    obs, _ = envs.reset(seed=seeds)
+    t = 0
+    while recording.any():
+        storage.ensure(t)
+        dist = agent.distribution(torch.as_tensor(obs, device=run.device))
+        action = dist.sample()
+        next_obs, reward, terminated, truncated, info = envs.step(agent.to_env(action))
+        done = terminated | truncated
+        storage.obs[t] = obs
+        storage.actions[t] = action.cpu().numpy()
+        storage.log_probs[t] = dist.log_prob(action).cpu().numpy()
+        storage.rewards[t] = reward
+        storage.dones[t] = done
+        storage.recorded[t] = recording
+        storage.tag[t] = np.where(recording, round_of, -1)
+        recorded_steps += int(recording.sum())
+        episode_return += reward
+        episode_length += 1
+
+        reset, seeds = done.copy(), [None] * n
+        finished = done & recording
+        if finished.any():
+            for i in np.flatnonzero(finished):
+                run.stats.add(episode_return[i], episode_length[i], episode_info(info, i))
+            recording[finished] = False
+            complete = [g for g in np.unique(groups[finished]) if not recording[groups == g].any()]
+            if complete and recorded_steps < hp.batch_steps:
+                new_members, seeds = start_rounds(complete, t + 1)
+                reset |= new_members
+        if reset.any():
+            # Envs that ended without starting a new round wait, masked. An ended env must not be
+            # stepped, so they are reset too, into their round's start state.
+            seeds = [seeds[i] if seeds[i] is not None or not reset[i] else rounds[round_of[i]].seed
+                     for i in range(n)]
+            next_obs, _ = envs.reset(seed=seeds, options={"reset_mask": reset})
+            episode_return[reset] = 0.0
+            episode_length[reset] = 0
+        obs = next_obs
+        t += 1
+    return rounds, recorded_steps, t
+
+
+def group_advantages(storage: EpisodeStorage, rounds: list[Round], length: int, hp: Params) -> np.ndarray:
+    """(T, N) advantage of every recorded step (0 elsewhere), group by group."""
+    size = hp.group_size
+    advantages = np.zeros((length, storage.rewards.shape[1]), np.float32)
+    for index, rnd in enumerate(rounds):
+        cols = slice(rnd.group * size, (rnd.group + 1) * size)
+        alive = storage.tag[rnd.start:length, cols] == index          # (L, G) this round's steps
+        last = np.flatnonzero(alive.any(axis=1)).max() + 1
+        alive = alive[:last]
+        rewards = np.where(alive, storage.rewards[rnd.start:rnd.start + last, cols], 0.0)
+        if hp.advantage == "return":
+            discounts = hp.gamma ** np.arange(last)[:, None]
+            returns = (rewards * discounts).sum(axis=0)                 # (G,)
+            adv = np.broadcast_to(group_relative_advantages(returns[None])[0], alive.shape)
+        else:
+            adv = group_relative_step_advantages(reward_to_go(rewards, ~alive, hp.gamma), alive)
+        block = advantages[rnd.start:rnd.start + last, cols]
+        block[alive] = adv[alive]
+    return advantages
+
+
+def grpo_loss(log_prob: torch.Tensor, old_log_prob: torch.Tensor, advantages: torch.Tensor, clip_coef: float,
+              kl_coef: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Clipped surrogate + kl_coef * KL(pi_old || pi_theta) (k3 estimator). Shapes (B,).
+    Returns (loss, kl)."""
+    pg_loss, _ = clipped_surrogate_loss(log_prob, old_log_prob, advantages, clip_coef)
+    kl = approx_kl(log_prob - old_log_prob)
+    return pg_loss + kl_coef * kl, kl
+
+
+def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: GroupBatch, hp: Params) -> dict[str, float]:
+    size = batch.obs.shape[0]
+    minibatch = max(1, size // hp.num_minibatches)
+    stats = torch.zeros(3)
+    steps = 0
+    for _ in range(hp.update_epochs):
+        order = torch.randperm(size)
+        for start in range(0, size - minibatch + 1, minibatch):
+            idx = order[start:start + minibatch]
+            dist = agent.distribution(batch.obs[idx])
+            loss, kl = grpo_loss(dist.log_prob(batch.actions[idx]), batch.log_probs[idx], batch.advantages[idx],
+                                 hp.clip_coef, hp.kl_coef)
+            entropy = dist.entropy().mean()
+            loss = loss - hp.ent_coef * entropy
+            optimizer.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(agent.parameters(), hp.max_grad_norm)
+            optimizer.step()
+            stats += torch.stack([loss, kl, entropy]).detach()
+            steps += 1
+    mean = (stats / max(steps, 1)).tolist()
+    return {"loss/policy": mean[0], "loss/approx_kl": mean[1], "loss/entropy": mean[2]}
+
+
+def train(cfg: TrainConfig, run: Run) -> None:
+    hp: Params = cfg.algo_params
+    if cfg.env.num_envs % hp.group_size:
+        raise DrivelabError(
+            f"config field 'env.num_envs' ({cfg.env.num_envs}) must be a multiple of 'grpo.group_size' ({hp.group_size})"
+        )
+    obs_space, act_space = env_spaces(cfg.env)
+    agent = build_policy(cfg, obs_space, act_space).to(run.device)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
+    modules, optimizers = {"policy": agent}, {"policy": optimizer}
+    run.restore(modules, optimizers)
+    run.checkpoint_if_due(modules, optimizers)
+    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED)
+    storage = EpisodeStorage(2 * -(-hp.batch_steps // envs.num_envs), envs.num_envs, obs_space, act_space)
+    try:
+        while not run.done:
+            if hp.anneal_lr:
+                optimizer.param_groups[0]["lr"] = hp.lr * max(0.0, 1.0 - run.step / cfg.steps)
+            started = time.perf_counter()
+            rounds, steps, length = collect_group_rounds(envs, agent, storage, hp, run)
+            advantages = group_advantages(storage, rounds, length, hp)
+            mask = storage.recorded[:length]
+            batch = GroupBatch(*(torch.as_tensor(x[:length][mask], device=run.device)
+                                 for x in (storage.obs, storage.actions, storage.log_probs)),
+                               advantages=torch.as_tensor(advantages[mask], device=run.device))
+            collected = time.perf_counter()
+            stats = update(agent, optimizer, batch, hp)
+            if agent.obs_rms is not None:
+                agent.obs_rms.update(batch.obs.float())
+            updated = time.perf_counter()
+            run.iteration += 1
+            run.advance(steps)
+            run.log({**stats, "batch/rounds": len(rounds), "batch/steps": steps,
+                     "batch/zero_advantage_fraction": float((batch.advantages == 0).float().mean()),
+                     "perf/collect_s": collected - started, "perf/update_s": updated - collected})
+            run.checkpoint_if_due(modules, optimizers)
+    finally:
+        envs.close()

@@ -1,0 +1,54 @@
+"""Loss functions of the policy-gradient family, as small pure functions (shapes in docstrings).
+
+Shared by REINFORCE, A2C, PPO and GRPO so that each algorithm file shows only what is its own.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def policy_gradient_loss(log_prob: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """-(1/B) sum_i log pi(a_i|s_i) * Psi_i: its gradient is minus the policy gradient estimate.
+
+    Args:
+        log_prob: (B,) log-probabilities of the taken actions (differentiable).
+        weights: (B,) Psi, e.g. reward-to-go; treated as a constant.
+    """
+    return -(log_prob * weights.detach()).mean()
+
+
+def clipped_surrogate_loss(log_prob: torch.Tensor, old_log_prob: torch.Tensor, advantages: torch.Tensor,
+                           clip_coef: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """PPO-Clip policy loss (Schulman et al. 2017, eq. 7), negated for minimisation.
+
+    Args: (B,) log pi_theta(a|s), (B,) log pi_old(a|s), (B,) advantages.
+    Returns: (loss, ratio) with ratio (B,) = pi_theta / pi_old.
+    """
+    ratio = (log_prob - old_log_prob).exp()
+    unclipped = ratio * advantages
+    clipped = ratio.clamp(1 - clip_coef, 1 + clip_coef) * advantages
+    return -torch.min(unclipped, clipped).mean(), ratio
+
+
+def value_loss(values: torch.Tensor, old_values: torch.Tensor, returns: torch.Tensor,
+               clip_coef: float | None) -> torch.Tensor:
+    """0.5 * (V - R)^2; with ``clip_coef``, the pessimistic max with the clipped prediction
+    V_old + clip(V - V_old, -eps, eps) (as in OpenAI baselines' PPO2). Shapes (B,)."""
+    loss = (values - returns).pow(2)
+    if clip_coef is not None:
+        clipped = old_values + (values - old_values).clamp(-clip_coef, clip_coef)
+        loss = torch.max(loss, (clipped - returns).pow(2))
+    return 0.5 * loss.mean()
+
+
+def approx_kl(log_ratio: torch.Tensor) -> torch.Tensor:
+    """KL(pi_old || pi_theta) estimated by E[(rho - 1) - log rho] (Schulman 2020, "k3"):
+    unbiased and never negative."""
+    return ((log_ratio.exp() - 1) - log_ratio).mean()
+
+
+def explained_variance(predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """1 - Var[target - predicted] / Var[target]: 1 is perfect, 0 no better than a constant."""
+    var = target.var()
+    return 1 - (target - predicted).var() / var if var > 0 else torch.tensor(float("nan"))
