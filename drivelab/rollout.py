@@ -106,7 +106,7 @@ class RolloutCollector:
 
             done = terminated | truncated
             self._record_episodes(reward, done, info)
-            buf.rewards[t] = self._scale(reward, done)
+            buf.rewards[t] = reward
             buf.terminated[t] = terminated
             buf.dones[t] = done
             # V(s_{t+1}) for GAE: the next row's value inside an episode (filled below), the
@@ -115,6 +115,8 @@ class RolloutCollector:
             if cut.any():
                 final_obs = np.stack(info["final_obs"][cut])
                 buf.next_values[t, cut] = agent.value(torch.as_tensor(final_obs, device=device)).cpu().numpy()
+        if self.reward_rms is not None:
+            self._scale_rewards(buf)
         buf.next_values[:-1] = np.where(buf.dones[:-1], buf.next_values[:-1], buf.values[1:].cpu().numpy())
         last_value = agent.value(torch.as_tensor(self.obs, device=device)).cpu().numpy()
         buf.next_values[-1] = np.where(buf.dones[-1], buf.next_values[-1], last_value)
@@ -130,14 +132,19 @@ class RolloutCollector:
             self.episode_return[done] = 0.0
             self.episode_length[done] = 0
 
-    def _scale(self, reward: np.ndarray, done: np.ndarray) -> np.ndarray:
-        if self.reward_rms is None:
-            return reward
-        self.discounted_return = self.discounted_return * self.gamma + reward
-        self.reward_rms.update(torch.as_tensor(self.discounted_return))
-        scaled = self.reward_rms.scale(torch.as_tensor(reward)).numpy()
-        self.discounted_return[done] = 0.0
-        return scaled
+    def _scale_rewards(self, buf: RolloutBuffer) -> None:
+        """Divide the rollout's rewards by the running std of the discounted return.
+
+        The statistics are updated once per rollout (not per step: cheaper, and every reward
+        of a rollout is scaled alike); the per-env discounted returns carry across rollouts.
+        """
+        returns = np.empty_like(buf.rewards, dtype=np.float64)
+        for t in range(len(buf.rewards)):
+            self.discounted_return = self.discounted_return * self.gamma + buf.rewards[t]
+            returns[t] = self.discounted_return
+            self.discounted_return[buf.dones[t]] = 0.0
+        self.reward_rms.update(torch.as_tensor(returns.reshape(-1)))
+        buf.rewards[:] = self.reward_rms.scale(torch.as_tensor(buf.rewards)).numpy()
 
 
 class EpisodeStorage:

@@ -174,3 +174,27 @@ def test_on_policy_algorithms_solve_cartpole(algo, steps, params, tmp_path):
     train(cfg, progress=False)
     result, _, _ = evaluate_checkpoint(tmp_path / algo, episodes=20)
     assert result.summary()["return_mean"] >= 195, result.summary()
+
+
+def test_grpo_needs_whole_groups(tmp_path):
+    from drivelab.errors import DrivelabError
+
+    cfg = build_config({"algo": "grpo", "run_dir": str(tmp_path), "env": {"num_envs": 6}, "grpo": {"group_size": 4}})
+    with pytest.raises(DrivelabError, match="multiple of 'grpo.group_size'"):
+        train(cfg, progress=False)
+
+
+@pytest.mark.parametrize("algo, params, grid", [
+    ("ppo", {"num_steps": 40, "num_minibatches": 2, "update_epochs": 1}, None),   # continuous actions
+    ("grpo", {"group_size": 2, "batch_steps": 40, "update_epochs": 1}, "3x3"),     # same-scenario groups
+])
+def test_on_policy_algorithms_run_on_metadrive_in_subprocesses(algo, params, grid, tmp_path):
+    cfg = build_config({"algo": algo, "steps": 80, "seed": 0, "run_dir": str(tmp_path / algo),
+                        "env": {"id": "MetaDrive-10env-v0", "num_envs": 2, "action_grid": grid,
+                                "kwargs": {"horizon": 30, "traffic_density": 0.0}}, algo: params})
+    train(cfg, progress=False)
+    import csv
+
+    with open(tmp_path / algo / "metrics.csv") as f:
+        names = {row["name"] for row in csv.DictReader(f)}
+    assert {"episode/return", "episode/route_completion", "episode/out_of_road_rate"} <= names

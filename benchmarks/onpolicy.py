@@ -1,0 +1,131 @@
+"""On-policy benchmarks (A2C, PPO, GRPO), written as JSON. Not part of the test suite.
+
+Speed: raw vectorised env steps/s with random actions, training steps/s, and the trainer's
+overhead (the share of wall time spent neither stepping envs nor in gradient updates):
+
+    python benchmarks/onpolicy.py speed --algo ppo --config configs/ppo_metadrive.yaml --steps 8192
+
+Learning: train from a config, then evaluate deterministically:
+
+    python benchmarks/onpolicy.py learn --config configs/ppo_lunarlander.yaml --steps 300000 --episodes 20
+    python benchmarks/onpolicy.py learn --config configs/ppo_metadrive.yaml --minutes 20 \\
+        --eval-env MetaDrive-validation-v0 --episodes 100
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from gymnasium.vector import AutoresetMode
+
+from drivelab.config import build_config, read_yaml, set_dotted
+from drivelab.envs import make_vector_env
+from drivelab.evaluate import evaluate_checkpoint
+from drivelab.run import train
+
+
+def load(args) -> object:
+    data = read_yaml(args.config) if args.config else {}
+    for key, value in (("algo", args.algo), ("env.id", args.env), ("env.num_envs", args.num_envs), ("seed", args.seed)):
+        if value is not None:
+            set_dotted(data, key, value)
+    return build_config(data)
+
+
+def random_steps_per_second(cfg, seconds: float = 20.0) -> float:
+    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.SAME_STEP)
+    try:
+        envs.action_space.seed(0)
+        envs.reset(seed=0)
+        steps, started = 0, time.perf_counter()
+        while time.perf_counter() - started < seconds:
+            envs.step(envs.action_space.sample())
+            steps += envs.num_envs
+        return steps / (time.perf_counter() - started)
+    finally:
+        envs.close()
+
+
+def metric_means(run_dir: Path, names: tuple[str, ...], skip_first: int = 1) -> dict[str, float]:
+    values: dict[str, list[float]] = {name: [] for name in names}
+    with open(run_dir / "metrics.csv") as f:
+        for row in csv.DictReader(f):
+            if row["name"] in values:
+                values[row["name"]].append(float(row["value"]))
+    return {name: float(np.mean(v[skip_first:] or v)) if v else float("nan") for name, v in values.items()}
+
+
+def speed(args) -> dict:
+    cfg = load(args)
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg.run_dir, cfg.steps = str(Path(tmp) / "run"), args.steps
+        raw = random_steps_per_second(cfg, args.seconds)
+        started = time.perf_counter()
+        train(cfg, progress=False)
+        wall = time.perf_counter() - started
+        perf = metric_means(Path(cfg.run_dir), ("perf/overhead", "perf/env_s", "perf/update_s", "perf/iteration_s"))
+        with open(Path(cfg.run_dir) / "metrics.csv") as f:
+            final_step = max(int(r["step"]) for r in csv.DictReader(f))
+    return {"benchmark": "onpolicy-speed", "algo": cfg.algo, "env": cfg.env.id, "num_envs": cfg.env.num_envs,
+            "random_env_steps_per_s": raw, "train_steps_per_s": final_step / wall, "train_wall_s": wall,
+            "overhead_share": perf["perf/overhead"], "env_share": perf["perf/env_s"] / perf["perf/iteration_s"],
+            "update_share": perf["perf/update_s"] / perf["perf/iteration_s"]}
+
+
+def learn(args) -> dict:
+    cfg = load(args)
+    run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="drivelab-bench-")) / "run"
+    cfg.run_dir = str(run_dir)
+    if args.steps:
+        cfg.steps = args.steps
+    if args.minutes:  # estimate the steps that fit the time budget from a short measurement
+        probe = random_steps_per_second(cfg, 15.0)
+        cfg.steps = int(probe * 0.85 * 60 * args.minutes)
+    started = time.perf_counter()
+    train(cfg, progress=not args.no_progress)
+    wall = time.perf_counter() - started
+    kwargs = dict(item.split("=", 1) for item in args.eval_kwarg)
+    result, env_cfg, ckpt = evaluate_checkpoint(run_dir, episodes=args.episodes, env_id=args.eval_env,
+                                                env_kwargs={k: json.loads(v) for k, v in kwargs.items()})
+    return {"benchmark": "onpolicy-learn", "algo": cfg.algo, "env": cfg.env.id, "eval_env": env_cfg.id,
+            "steps": int(ckpt.name.split("_")[-1]), "train_wall_s": wall,
+            "train_steps_per_s": int(ckpt.name.split("_")[-1]) / wall, "run_dir": str(run_dir), **result.summary()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in ("speed", "learn"):
+        p = sub.add_parser(name)
+        p.add_argument("--config")
+        p.add_argument("--algo")
+        p.add_argument("--env")
+        p.add_argument("--num-envs", type=int)
+        p.add_argument("--seed", type=int)
+        p.add_argument("--steps", type=int, default=8192 if name == "speed" else None)
+        p.add_argument("--out", help="also write the JSON here")
+    sub.choices["speed"].add_argument("--seconds", type=float, default=20.0, help="random-action measurement time")
+    learn_p = sub.choices["learn"]
+    learn_p.add_argument("--minutes", type=float, help="train for about this long instead of --steps")
+    learn_p.add_argument("--episodes", type=int, default=20)
+    learn_p.add_argument("--eval-env")
+    learn_p.add_argument("--eval-kwarg", action="append", default=[], metavar="KEY=JSON")
+    learn_p.add_argument("--run-dir", help="keep the run here (default: a temporary directory)")
+    learn_p.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args()
+    result = speed(args) if args.command == "speed" else learn(args)
+    text = json.dumps(result, indent=1)
+    print(text)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
