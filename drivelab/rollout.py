@@ -14,17 +14,19 @@ action is ignored) and makes the two kinds of episode end explicit:
 from __future__ import annotations
 
 import time
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import gymnasium as gym
 import numpy as np
 import torch
-from gymnasium.vector import VectorEnv
+from gymnasium.vector import AutoresetMode, VectorEnv
 
+from drivelab.envs import make_vector_env
 from drivelab.episodes import episode_info
 from drivelab.nets import ActorCritic
 from drivelab.normalize import RunningMeanStd
 from drivelab.returns import gae
+from drivelab.run import iteration_timing
 
 
 class RolloutBatch(NamedTuple):
@@ -145,6 +147,45 @@ class RolloutCollector:
             self.discounted_return[buf.dones[t]] = 0.0
         self.reward_rms.update(torch.as_tensor(returns.reshape(-1)))
         buf.rewards[:] = self.reward_rms.scale(torch.as_tensor(buf.rewards)).numpy()
+
+
+def train_actor_critic(cfg, run, agent: ActorCritic, optimizer: torch.optim.Optimizer,
+                       update: Callable[[RolloutBatch], dict[str, float]], log_every: int = 1) -> None:
+    """The loop A2C and PPO share: collect T steps in each of N envs, update, log, checkpoint.
+
+    ``update(batch)`` is the algorithm's own part: one gradient step (A2C) or epochs of
+    minibatch steps (PPO). ``cfg.algo_params`` provides num_steps, gamma, gae_lambda, lr,
+    anneal_lr and normalize_reward.
+    """
+    hp = cfg.algo_params
+    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.SAME_STEP)
+    collector = RolloutCollector(envs, run, hp.gamma, hp.normalize_reward)
+    modules = {"policy": agent, **({"reward_rms": collector.reward_rms} if collector.reward_rms is not None else {})}
+    optimizers = {"policy": optimizer}
+    run.restore(modules, optimizers)
+    run.checkpoint_if_due(modules, optimizers)
+    buf = RolloutBuffer(hp.num_steps, envs.num_envs, envs.single_observation_space, envs.single_action_space,
+                        run.device)
+    try:
+        while not run.done:
+            if hp.anneal_lr:  # linear decay to 0 over the run (a function of the step, so resume-safe)
+                optimizer.param_groups[0]["lr"] = hp.lr * max(0.0, 1.0 - run.step / cfg.steps)
+            started = time.perf_counter()
+            env_before = collector.env_seconds
+            steps = collector.collect(agent, buf)
+            collected = time.perf_counter()
+            stats = update(buf.batch(hp.gamma, hp.gae_lambda))
+            if agent.obs_rms is not None:  # after the update, so rollout and update saw the same statistics
+                agent.obs_rms.update(buf.obs.flatten(0, 1).float())
+            updated = time.perf_counter()
+            run.iteration += 1
+            run.advance(steps)
+            if run.iteration % log_every == 0 or run.done:
+                run.log({**stats, "charts/lr": optimizer.param_groups[0]["lr"],
+                         **iteration_timing(started, collected, updated, collector.env_seconds - env_before)})
+            run.checkpoint_if_due(modules, optimizers)
+    finally:
+        envs.close()
 
 
 class EpisodeStorage:

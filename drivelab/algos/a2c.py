@@ -7,25 +7,23 @@ A2C), and takes ONE gradient step on
     L = -mean(log pi(a|s) * A) + vf_coef * 0.5 * mean((V(s) - R)^2) - ent_coef * H[pi(.|s)].
 
 No clipping, no epochs: every sample is used once, by the policy that collected it (which is
-what makes the plain policy gradient unbiased). The rollout machinery is PPO's.
+what makes the plain policy gradient unbiased). The rollout loop is PPO's (:func:`drivelab.rollout.train_actor_critic`).
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import gymnasium as gym
 import torch
-from gymnasium.vector import AutoresetMode
 
 from drivelab.config import TrainConfig
-from drivelab.envs import env_spaces, make_vector_env
+from drivelab.envs import env_spaces
 from drivelab.errors import DrivelabError
 from drivelab.losses import explained_variance, policy_gradient_loss, value_loss
 from drivelab.nets import ActorCritic
-from drivelab.rollout import RolloutBatch, RolloutBuffer, RolloutCollector
-from drivelab.run import Run, iteration_timing
+from drivelab.rollout import RolloutBatch, train_actor_critic
+from drivelab.run import Run
 
 
 @dataclass
@@ -79,37 +77,11 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutB
 
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    obs_space, act_space = env_spaces(cfg.env)
-    agent = build_policy(cfg, obs_space, act_space).to(run.device)
+    agent = build_policy(cfg, *env_spaces(cfg.env)).to(run.device)
     if hp.optimizer == "rmsprop":  # A3C's settings (alpha 0.99, eps 1e-5)
         optimizer = torch.optim.RMSprop(agent.parameters(), lr=hp.lr, alpha=0.99, eps=1e-5)
     else:
         optimizer = torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
-    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.SAME_STEP)
-    collector = RolloutCollector(envs, run, hp.gamma, hp.normalize_reward)
-    modules = {"policy": agent, **({"reward_rms": collector.reward_rms} if collector.reward_rms is not None else {})}
-    optimizers = {"policy": optimizer}
-    run.restore(modules, optimizers)
-    run.checkpoint_if_due(modules, optimizers)
-    buf = RolloutBuffer(hp.num_steps, envs.num_envs, obs_space, act_space, run.device)
-    # A2C iterations are tiny (T * N steps); log every ~1000 steps to keep tracking cheap.
-    log_every = max(1, 1000 // (hp.num_steps * envs.num_envs))
-    try:
-        while not run.done:
-            if hp.anneal_lr:
-                optimizer.param_groups[0]["lr"] = hp.lr * max(0.0, 1.0 - run.step / cfg.steps)
-            started = time.perf_counter()
-            env_before = collector.env_seconds
-            steps = collector.collect(agent, buf)
-            collected = time.perf_counter()
-            stats = update(agent, optimizer, buf.batch(hp.gamma, hp.gae_lambda), hp)
-            if agent.obs_rms is not None:
-                agent.obs_rms.update(buf.obs.flatten(0, 1).float())
-            updated = time.perf_counter()
-            run.iteration += 1
-            run.advance(steps)
-            if run.iteration % log_every == 0 or run.done:
-                run.log({**stats, **iteration_timing(started, collected, updated, collector.env_seconds - env_before)})
-            run.checkpoint_if_due(modules, optimizers)
-    finally:
-        envs.close()
+    # A2C iterations are tiny (T * N steps): log about every 1000 steps to keep tracking cheap.
+    log_every = max(1, 1000 // (hp.num_steps * cfg.env.num_envs))
+    train_actor_critic(cfg, run, agent, optimizer, lambda batch: update(agent, optimizer, batch, hp), log_every)

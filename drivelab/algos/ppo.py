@@ -14,20 +14,18 @@ when the approximate KL to the rollout policy exceeds ``target_kl``.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import gymnasium as gym
 import torch
-from gymnasium.vector import AutoresetMode
 
 from drivelab.config import TrainConfig
-from drivelab.envs import env_spaces, make_vector_env
+from drivelab.envs import env_spaces
 from drivelab.errors import DrivelabError
-from drivelab.nets import ActorCritic
 from drivelab.losses import approx_kl, clipped_surrogate_loss, explained_variance, value_loss
-from drivelab.rollout import RolloutBatch, RolloutBuffer, RolloutCollector
-from drivelab.run import Run, iteration_timing
+from drivelab.nets import ActorCritic
+from drivelab.rollout import RolloutBatch, train_actor_critic
+from drivelab.run import Run
 
 
 @dataclass
@@ -104,33 +102,6 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutB
 
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    obs_space, act_space = env_spaces(cfg.env)
-    agent = build_policy(cfg, obs_space, act_space).to(run.device)
+    agent = build_policy(cfg, *env_spaces(cfg.env)).to(run.device)
     optimizer = torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
-    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.SAME_STEP)
-    collector = RolloutCollector(envs, run, hp.gamma, hp.normalize_reward)
-    modules = {"policy": agent, **({"reward_rms": collector.reward_rms} if collector.reward_rms is not None else {})}
-    optimizers = {"policy": optimizer}
-    run.restore(modules, optimizers)
-    run.checkpoint_if_due(modules, optimizers)
-    buf = RolloutBuffer(hp.num_steps, envs.num_envs, obs_space, act_space, run.device)
-    try:
-        while not run.done:
-            if hp.anneal_lr:  # linear decay to 0 over the run (a function of the step, so resume-safe)
-                optimizer.param_groups[0]["lr"] = hp.lr * max(0.0, 1.0 - run.step / cfg.steps)
-            started = time.perf_counter()
-            env_before = collector.env_seconds
-            steps = collector.collect(agent, buf)
-            collected = time.perf_counter()
-            stats = update(agent, optimizer, buf.batch(hp.gamma, hp.gae_lambda), hp)
-            if agent.obs_rms is not None:  # after the update, so rollout and update saw the same statistics
-                agent.obs_rms.update(buf.obs.flatten(0, 1).float())
-            updated = time.perf_counter()
-            run.iteration += 1
-            run.advance(steps)
-            run.log({**stats, "charts/lr": optimizer.param_groups[0]["lr"],
-                     **iteration_timing(started, collected, updated, collector.env_seconds - env_before)})
-            run.checkpoint_if_due(modules, optimizers)
-    finally:
-        envs.close()
-
+    train_actor_critic(cfg, run, agent, optimizer, lambda batch: update(agent, optimizer, batch, hp))
