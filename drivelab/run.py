@@ -92,14 +92,21 @@ class Run:
                    "perf/steps_per_s": (self.step - self._start_step) / max(elapsed, 1e-9)}
         self.tracker.log(self.step, metrics)
 
+    def checkpoint_due(self) -> bool:
+        """True when a checkpoint is owed: none yet, ``checkpoint_every`` steps since the last, or
+        the end of training (and not already written at this step)."""
+        if self.step == self._last_checkpoint_step:
+            return False
+        return (self._last_checkpoint_step < 0 or self.done
+                or self.step >= self._last_checkpoint_step + self.cfg.checkpoint_every)
+
     def checkpoint_if_due(self, modules: dict[str, torch.nn.Module], optimizers: dict[str, torch.optim.Optimizer],
                           trainer_state: dict[str, Any] | None = None,
                           tensors: dict[str, torch.Tensor] | None = None, force: bool = False) -> Path | None:
         """Save a checkpoint when ``checkpoint_every`` steps have passed since the last one, at the
         end of training, or when forced. ``trainer_state`` (JSON-able) and ``tensors`` are saved
         alongside and come back from :meth:`restore`."""
-        due = self._last_checkpoint_step < 0 or self.step >= self._last_checkpoint_step + self.cfg.checkpoint_every
-        if not (due or force or self.done) or self.step == self._last_checkpoint_step:
+        if not (force or self.checkpoint_due()):
             return None
         self._last_checkpoint_step = self.step
         state = {

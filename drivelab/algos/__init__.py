@@ -32,13 +32,13 @@ def _spec(name: str, module: ModuleType) -> AlgoSpec:
 
 
 def _load() -> dict[str, AlgoSpec]:
-    from drivelab.algos import a2c, grpo, ppo, reinforce
+    from drivelab.algos import a2c, ddpg, grpo, ppo, reinforce, sac, td3
 
-    modules = {"reinforce": reinforce, "a2c": a2c, "ppo": ppo, "grpo": grpo}
+    modules = {"reinforce": reinforce, "a2c": a2c, "ppo": ppo, "grpo": grpo, "ddpg": ddpg, "td3": td3, "sac": sac}
     return {name: _spec(name, module) for name, module in modules.items()}
 
 
-ALGOS: tuple[str, ...] = ("reinforce", "a2c", "ppo", "grpo")
+ALGOS: tuple[str, ...] = ("reinforce", "a2c", "ppo", "grpo", "ddpg", "td3", "sac")
 
 
 def get_algo(name: str) -> AlgoSpec:

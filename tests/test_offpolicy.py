@@ -1,0 +1,121 @@
+"""DDPG / TD3 / SAC: numerics of the shared pieces, checkpoints with the buffer, learning."""
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from drivelab.algos.sac import soft_td_target
+from drivelab.algos.td3 import td_target
+from drivelab.checkpoint import list_checkpoints
+from drivelab.config import build_config
+from drivelab.errors import DrivelabError
+from drivelab.evaluate import evaluate_checkpoint
+from drivelab.offpolicy import EnsembleLinear, OffPolicyAgent, polyak_update, squashed_gaussian_log_prob
+from drivelab.run import train
+
+
+def test_td_targets_bootstrap_through_truncation_but_not_termination():
+    r = torch.tensor([1.0, 1.0])
+    terminated = torch.tensor([1.0, 0.0])            # the second transition was truncated (time limit)
+    next_q = torch.tensor([[5.0, 5.0], [3.0, 4.0]])  # (E=2, B)
+    np.testing.assert_allclose(td_target(r, terminated, next_q, 0.9).numpy(), [1.0, 1.0 + 0.9 * 4.0])
+    y = soft_td_target(r, terminated, next_q, torch.tensor([0.5, 0.5]), torch.tensor(0.2), 0.9)
+    np.testing.assert_allclose(y.numpy(), [1.0, 1.0 + 0.9 * (4.0 - 0.2 * 0.5)], rtol=1e-6)
+
+
+def test_tanh_log_prob_matches_the_change_of_variables():
+    torch.manual_seed(0)
+    mean, log_std = torch.randn(64, 2), 0.5 * torch.randn(64, 2)
+    u = mean + log_std.exp() * torch.randn(64, 2)
+    ours = squashed_gaussian_log_prob(u, mean, log_std)
+    # p_A(a) = p_U(u) / |det da/du| with a = tanh(u): da/du = 1 - tanh(u)^2 per dimension
+    gaussian = torch.distributions.Normal(mean, log_std.exp()).log_prob(u).sum(-1)
+    by_hand = gaussian - torch.log(1 - torch.tanh(u) ** 2).sum(-1)
+    torch.testing.assert_close(ours, by_hand, rtol=1e-4, atol=1e-4)
+    # and it is a density on (-1, 1): integrate a 1-D case numerically
+    grid = torch.linspace(-0.9999, 0.9999, 20001)
+    u1 = torch.atanh(grid)[:, None]
+    density = squashed_gaussian_log_prob(u1, torch.full_like(u1, 0.3), torch.full_like(u1, math.log(0.8))).exp()
+    assert torch.trapezoid(density, grid).item() == pytest.approx(1.0, abs=2e-3)
+    # it stays finite where tanh saturates
+    assert torch.isfinite(squashed_gaussian_log_prob(torch.tensor([[30.0]]), torch.zeros(1, 1), torch.zeros(1, 1))).all()
+
+
+def test_polyak_update():
+    source, target = torch.nn.Linear(2, 2), torch.nn.Linear(2, 2)
+    torch.nn.init.ones_(source.weight), torch.nn.init.zeros_(target.weight)
+    polyak_update(target, source, 0.1)
+    torch.testing.assert_close(target.weight, torch.full((2, 2), 0.1))
+    polyak_update(target, source, 0.1)
+    torch.testing.assert_close(target.weight, torch.full((2, 2), 0.19))
+
+
+def test_ensemble_linear_equals_separate_layers():
+    layer = EnsembleLinear(2, 3, 4)
+    x = torch.randn(5, 3)
+    out = layer(x.expand(2, 5, 3))
+    for e in range(2):
+        torch.testing.assert_close(out[e], x @ layer.weight[e] + layer.bias[e, 0])
+
+
+def test_discrete_actions_are_refused_clearly():
+    with pytest.raises(DrivelabError, match="continuous"):
+        OffPolicyAgent(gym.spaces.Box(-1, 1, (3,)), gym.spaces.Discrete(9), [8], "relu", stochastic=True)
+
+
+def _pendulum(run_dir, algo, steps, **params):
+    return build_config({"algo": algo, "steps": steps, "seed": 0, "run_dir": str(run_dir), "checkpoint_every": 300,
+                         "env": {"id": "Pendulum-v1", "num_envs": 1},
+                         algo: {"learning_starts": 200, "hidden": [32, 32], "batch_size": 32, "eval_every": 0, **params}})
+
+
+def test_resume_continues_with_the_same_replay_buffer(tmp_path):
+    train(_pendulum(tmp_path / "r", "sac", 600), progress=False)
+    first = load_file(str(list_checkpoints(tmp_path / "r")[-1] / "tensors.safetensors"))
+    train(_pendulum(tmp_path / "r", "sac", 900), resume=True, progress=False)
+    final = list_checkpoints(tmp_path / "r")[-1]
+    assert final.name.endswith("900")
+    second = load_file(str(final / "tensors.safetensors"))
+    assert first["replay/obs"].shape[0] == 600 and second["replay/obs"].shape[0] == 900
+    for name in ("obs", "next_obs", "actions", "rewards", "terminated", "truncated"):
+        assert torch.equal(second[f"replay/{name}"][:600], first[f"replay/{name}"]), name
+    assert second["replay/truncated"].sum() == 4 and second["replay/terminated"].sum() == 0  # 200-step episodes
+
+
+def test_sac_learns_from_images_with_a_cnn(tmp_path):
+    cfg = build_config({"algo": "sac", "steps": 150, "seed": 0, "run_dir": str(tmp_path / "img"),
+                        "env": {"id": "CarRacing-v3", "num_envs": 1},
+                        "sac": {"learning_starts": 100, "buffer_size": 1000, "batch_size": 8, "hidden": [32],
+                                "eval_every": 0}})
+    train(cfg, progress=False)
+    tensors = load_file(str(list_checkpoints(tmp_path / "img")[-1] / "tensors.safetensors"))
+    assert tensors["replay/obs"].dtype == torch.uint8
+    assert any(k.startswith("module/policy/encoder.convs") for k in tensors)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algo, steps, threshold", [("sac", 8000, -250), ("td3", 8000, -250)])
+def test_sac_and_td3_swing_up_the_pendulum(algo, steps, threshold, tmp_path):
+    cfg = build_config({"algo": algo, "steps": steps, "seed": 0, "run_dir": str(tmp_path / algo),
+                        "env": {"id": "Pendulum-v1", "num_envs": 1},
+                        algo: {"learning_starts": 1000, "hidden": [64, 64], "actor_lr": 1e-3, "critic_lr": 1e-3,
+                               "eval_every": 0}})
+    train(cfg, progress=False)
+    result, _, _ = evaluate_checkpoint(tmp_path / algo, episodes=10)
+    assert result.summary()["return_mean"] >= threshold, result.summary()
+
+
+@pytest.mark.slow
+def test_ddpg_improves_on_pendulum(tmp_path):
+    cfg = build_config({"algo": "ddpg", "steps": 8000, "seed": 0, "run_dir": str(tmp_path / "ddpg"),
+                        "env": {"id": "Pendulum-v1", "num_envs": 1},
+                        "ddpg": {"learning_starts": 1000, "hidden": [64, 64], "actor_lr": 1e-3, "critic_lr": 1e-3,
+                                 "noise": "gaussian", "noise_std": 0.1, "noise_std_final": 0.1, "eval_every": 0}})
+    train(cfg, progress=False)
+    before, _, _ = evaluate_checkpoint(list_checkpoints(tmp_path / "ddpg")[0], episodes=10)
+    after, _, _ = evaluate_checkpoint(tmp_path / "ddpg", episodes=10)
+    assert after.summary()["return_mean"] > before.summary()["return_mean"] + 300, (before.summary(), after.summary())
