@@ -171,6 +171,11 @@ class OffPolicyAgent(nn.Module):
         self.register_buffer("action_scale", (high - low) / 2)
         self.register_buffer("action_bias", (high + low) / 2)
 
+    def compile_networks(self) -> None:
+        """torch.compile the forward passes (state_dict keys stay the same, so checkpoints too)."""
+        for module in (self.encoder, self.actor, self.critic):
+            module.forward = torch.compile(module.forward)
+
     def features(self, obs: torch.Tensor) -> torch.Tensor:
         return self.encoder(obs if obs.dtype == torch.uint8 else obs.float())
 
@@ -192,6 +197,12 @@ def polyak_update(target: nn.Module, source: nn.Module, tau: float) -> None:
     """target <- (1 - tau) * target + tau * source, for every parameter, in one fused op."""
     with torch.no_grad():
         torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
+
+
+def make_optimizers(agent: OffPolicyAgent, hp) -> dict[str, torch.optim.Optimizer]:
+    """Adam for the critics (which also train the image encoder) and for the actor."""
+    return {"critic": torch.optim.Adam([*agent.encoder.parameters(), *agent.critic.parameters()], lr=hp.critic_lr),
+            "actor": torch.optim.Adam(agent.actor.parameters(), lr=hp.actor_lr)}
 
 
 def make_target(module: nn.Module) -> nn.Module:
@@ -263,6 +274,10 @@ def train_off_policy(cfg, run, agent: OffPolicyAgent, modules: dict[str, nn.Modu
     continues with the same data. Env state cannot be saved: resumed envs start new episodes.
     """
     hp = cfg.algo_params
+    if hp.compile:
+        for module in modules.values():
+            if isinstance(module, OffPolicyAgent):
+                module.compile_networks()
     envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.SAME_STEP)
     n = envs.num_envs
     buffer = ReplayBuffer(hp.buffer_size, envs.single_observation_space, envs.single_action_space, run.device)

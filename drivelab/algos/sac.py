@@ -24,7 +24,8 @@ import torch
 from drivelab.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.envs import env_spaces
-from drivelab.offpolicy import OffPolicyAgent, OffPolicyParams, StatAccumulator, make_target, polyak_update, train_off_policy
+from drivelab.offpolicy import (OffPolicyAgent, OffPolicyParams, StatAccumulator, make_optimizers, make_target,
+                                polyak_update, train_off_policy)
 from drivelab.run import Run
 
 
@@ -63,13 +64,10 @@ def train(cfg: TrainConfig, run: Run) -> None:
     target = make_target(agent)
     log_alpha = torch.nn.Parameter(torch.tensor(float(hp.init_alpha)).log().to(run.device))
     target_entropy = hp.target_entropy if hp.target_entropy is not None else -float(act_space.shape[0])
-    critic_opt = torch.optim.Adam([*agent.encoder.parameters(), *agent.critic.parameters()], lr=hp.critic_lr)
-    actor_opt = torch.optim.Adam(agent.actor.parameters(), lr=hp.actor_lr)
+    optimizers = make_optimizers(agent, hp)
+    critic_opt, actor_opt = optimizers["critic"], optimizers["actor"]
     alpha_opt = torch.optim.Adam([log_alpha], lr=hp.alpha_lr)
     alpha_holder = torch.nn.ParameterDict({"log_alpha": log_alpha})
-    critic_forward, actor_forward = agent.critic, agent.actor
-    if hp.compile:
-        critic_forward, actor_forward = torch.compile(agent.critic), torch.compile(agent.actor)
     stats = StatAccumulator("loss/critic", "loss/actor", "loss/alpha", "charts/alpha", "charts/entropy", "charts/q")
     updates = 0
 
@@ -77,11 +75,11 @@ def train(cfg: TrainConfig, run: Run) -> None:
         nonlocal updates
         alpha = log_alpha.exp().detach()
         with torch.no_grad():
-            next_action, next_log_prob = actor_forward(agent.features(batch.next_obs))
+            next_action, next_log_prob = agent.actor(agent.features(batch.next_obs))
             next_q = target.critic(target.features(batch.next_obs), next_action)
             y = soft_td_target(batch.rewards, batch.terminated, next_q, next_log_prob, alpha, hp.gamma)
         features = agent.features(batch.obs)
-        q = critic_forward(features, batch.actions)
+        q = agent.critic(features, batch.actions)
         loss_q = critic_loss(q, y)
         critic_opt.zero_grad()
         loss_q.backward()
@@ -89,8 +87,8 @@ def train(cfg: TrainConfig, run: Run) -> None:
 
         if updates % hp.actor_every == 0:
             detached = features.detach()  # the actor does not train the (image) encoder
-            action, log_prob = actor_forward(detached)
-            q_pi = critic_forward(detached, action).min(dim=0).values
+            action, log_prob = agent.actor(detached)
+            q_pi = agent.critic(detached, action).min(dim=0).values
             loss_pi = (alpha * log_prob - q_pi).mean()
             actor_opt.zero_grad()
             loss_pi.backward()
@@ -109,6 +107,6 @@ def train(cfg: TrainConfig, run: Run) -> None:
 
     train_off_policy(cfg, run, agent,
                      modules={"policy": agent, "target": target, "alpha": alpha_holder},
-                     optimizers={"critic": critic_opt, "actor": actor_opt, "alpha": alpha_opt},
+                     optimizers={**optimizers, "alpha": alpha_opt},
                      explore=explore, update=update, end_episodes=lambda done: None, flush_stats=stats.flush)
 

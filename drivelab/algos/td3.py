@@ -23,7 +23,7 @@ from drivelab.config import TrainConfig
 from drivelab.envs import env_spaces
 from drivelab.errors import DrivelabError
 from drivelab.offpolicy import (OffPolicyAgent, OffPolicyParams, StatAccumulator, linear_schedule, make_noise,
-                                make_target, polyak_update, train_off_policy)
+                                make_optimizers, make_target, polyak_update, train_off_policy)
 from drivelab.run import Run
 
 
@@ -75,8 +75,8 @@ def train(cfg: TrainConfig, run: Run) -> None:
     obs_space, act_space = env_spaces(cfg.env)
     agent = build_policy(cfg, obs_space, act_space).to(run.device)
     target = make_target(agent)
-    critic_opt = torch.optim.Adam([*agent.encoder.parameters(), *agent.critic.parameters()], lr=hp.critic_lr)
-    actor_opt = torch.optim.Adam(agent.actor.parameters(), lr=hp.actor_lr)
+    optimizers = make_optimizers(agent, hp)
+    critic_opt, actor_opt = optimizers["critic"], optimizers["actor"]
     stats = StatAccumulator("loss/critic", "loss/actor", "charts/q")
     updates = 0
 
@@ -104,5 +104,5 @@ def train(cfg: TrainConfig, run: Run) -> None:
 
     explore, reset_noise = exploration(agent, hp, cfg.env.num_envs, act_space.shape[0], cfg.seed)
     train_off_policy(cfg, run, agent, modules={"policy": agent, "target": target},
-                     optimizers={"critic": critic_opt, "actor": actor_opt},
+                     optimizers=optimizers,
                      explore=explore, update=update, end_episodes=reset_noise, flush_stats=stats.flush)
