@@ -1,4 +1,5 @@
-"""On-policy benchmarks (A2C, PPO, GRPO), written as JSON. Not part of the test suite.
+"""Training benchmarks, written as JSON. Not part of the test suite. `learn` works for every
+algorithm's config; `speed` is for the on-policy family (A2C, PPO, GRPO).
 
 Speed: raw vectorised env steps/s with random actions, training steps/s, and the trainer's
 overhead (the share of wall time spent neither stepping envs nor in gradient updates):
@@ -85,9 +86,9 @@ def learn(args) -> dict:
     cfg.run_dir = str(run_dir)
     if args.steps:
         cfg.steps = args.steps
-    if args.minutes:  # estimate the steps that fit the time budget from a short measurement
-        probe = random_steps_per_second(cfg, 15.0)
-        cfg.steps = int(probe * 0.85 * 60 * args.minutes)
+    if args.minutes:  # train until the time budget is spent (cfg.steps stays an upper bound)
+        cfg.max_minutes = args.minutes
+        cfg.steps = max(cfg.steps, 10**9) if not args.steps else cfg.steps
     started = time.perf_counter()
     train(cfg, progress=not args.no_progress)
     wall = time.perf_counter() - started

@@ -50,6 +50,8 @@ class TrainConfig:
     algo: str = "reinforce"
     env: EnvConfig = field(default_factory=EnvConfig)
     steps: int = 100_000
+    # Stop (with a final checkpoint) after this much training time, even if `steps` is not reached.
+    max_minutes: float | None = None
     seed: int = 0
     run_dir: str | None = None
     # Intra-op threads for torch. 1 is fastest when env subprocesses share a few cores.
@@ -148,6 +150,7 @@ def build_config(data: dict, where: str = "config") -> TrainConfig:
 def _validate(cfg: TrainConfig) -> None:
     checks = [
         ("steps", cfg.steps >= 0, "must be >= 0"),
+        ("max_minutes", cfg.max_minutes is None or cfg.max_minutes > 0, "must be > 0"),
         ("env.num_envs", cfg.env.num_envs >= 1, "must be >= 1"),
         ("torch_threads", cfg.torch_threads >= 1, "must be >= 1"),
         ("checkpoint_every", cfg.checkpoint_every >= 1, "must be >= 1"),

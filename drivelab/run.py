@@ -84,7 +84,11 @@ class Run:
 
     @property
     def done(self) -> bool:
-        return self.step >= self.cfg.steps
+        """``steps`` reached, or ``max_minutes`` of training spent (in this process)."""
+        if self.step >= self.cfg.steps:
+            return True
+        limit = self.cfg.max_minutes
+        return limit is not None and time.perf_counter() - self._start_time >= 60 * limit
 
     def log(self, metrics: dict[str, float]) -> None:
         elapsed = time.perf_counter() - self._start_time

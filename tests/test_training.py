@@ -119,3 +119,10 @@ def test_bad_input_is_one_line_without_traceback(args, fragment, run_cli, tmp_pa
     assert "Traceback" not in out.stderr
     lines = [line for line in out.stderr.strip().splitlines() if line]
     assert len(lines) == 1 and fragment in lines[0], out.stderr
+
+
+def test_max_minutes_stops_training_with_a_final_checkpoint(tmp_path):
+    cfg = _cartpole(tmp_path / "t", 10**9, max_minutes=0.03)
+    train(cfg, progress=False)
+    last = resolve_checkpoint(tmp_path / "t")
+    assert 0 < int(last.name.split("_")[-1]) < 10**6
