@@ -93,7 +93,28 @@ def build_parser() -> argparse.ArgumentParser:
     _train_parser(sub)
     _eval_parser(sub)
     sub.add_parser("envs", help="list drivelab's MetaDrive env ids")
+    _reward_parser(sub)
     return parser
+
+
+def _reward_parser(sub) -> None:
+    reward = sub.add_parser("reward", help="plot a reward function, or compare reward functions on the same episodes")
+    tools = reward.add_subparsers(dest="tool", required=True)
+    plot = tools.add_parser("plot", help="reward against cross-track error and heading error, to a PNG")
+    plot.add_argument("--reward", required=True, metavar="FILE.yaml", help="reward terms (e.g. configs/rewards/cte.yaml)")
+    plot.add_argument("--out", default="reward.png")
+    plot.add_argument("--max-cte", type=float, default=3.0)
+    plot.add_argument("--speed", type=float, default=10.0, help="speed (m/s) for speed-dependent terms")
+    compare = tools.add_parser("compare", help="score the same episodes under several reward configs")
+    compare.add_argument("--rewards", nargs="+", required=True, metavar="FILE.yaml")
+    compare.add_argument("--env", default="drivelab/MetaDriveLaneFollow-v0")
+    compare.add_argument("--policy", default="lane-keeping", help="random, lane-keeping, or a run/checkpoint directory")
+    compare.add_argument("--episodes", type=int, default=3)
+    compare.add_argument("--seed", type=int, default=0)
+    compare.add_argument("--env-kwarg", action="append", default=[], metavar="KEY=VALUE")
+    compare.add_argument("--max-steps", type=int, default=1000)
+    compare.add_argument("--out", default="reward_compare.png")
+    compare.add_argument("--json", action="store_true")
 
 
 def _train_data(args: argparse.Namespace, extra: dict[str, Any]) -> tuple[dict, bool]:
@@ -148,13 +169,7 @@ def format_eval(summary: dict, env_id: str, checkpoint: Path) -> str:
 def cmd_eval(args: argparse.Namespace) -> int:
     from drivelab.evaluate import evaluate_checkpoint
 
-    kwargs = {}
-    for item in args.env_kwarg:
-        key, eq, value = item.partition("=")
-        if not eq or not key:
-            raise DrivelabError(f"--env-kwarg expects KEY=VALUE, got {item!r}")
-        kwargs[key] = parse_value(value)
-    result, env_cfg, ckpt = evaluate_checkpoint(args.path, args.episodes, args.env, kwargs, args.num_envs,
+    result, env_cfg, ckpt = evaluate_checkpoint(args.path, args.episodes, args.env, _env_kwargs(args.env_kwarg), args.num_envs,
                                                 args.seed, deterministic=not args.stochastic)
     summary = result.summary()
     if args.json:
@@ -164,10 +179,45 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _env_kwargs(items: list[str]) -> dict[str, Any]:
+    kwargs = {}
+    for item in items:
+        key, eq, value = item.partition("=")
+        if not eq or not key:
+            raise DrivelabError(f"--env-kwarg expects KEY=VALUE, got {item!r}")
+        kwargs[key] = parse_value(value)
+    return kwargs
+
+
+def cmd_reward(args: argparse.Namespace) -> int:
+    from drivelab import reward_tools
+
+    if args.tool == "plot":
+        path = reward_tools.plot_reward(reward_tools.load_reward_config(args.reward), args.out, args.max_cte, args.speed)
+        print(f"wrote {path}")
+        return 0
+    if args.episodes < 1:
+        raise DrivelabError(f"--episodes must be >= 1, got {args.episodes}")
+    configs = {Path(f).stem: reward_tools.load_reward_config(f) for f in args.rewards}
+    trajectories = reward_tools.record_episodes(args.env, args.policy, args.episodes, args.seed,
+                                                _env_kwargs(args.env_kwarg), args.max_steps)
+    table = reward_tools.compare_rewards(trajectories, configs)
+    reward_tools.plot_comparison(trajectories, configs, args.out)
+    if args.json:
+        print(json.dumps({"env": args.env, "policy": args.policy, "episodes": args.episodes, "table": table}))
+    else:
+        print(f"{args.episodes} episodes of {args.env} with policy '{args.policy}', scored under each reward config:")
+        print(reward_tools.format_table(table))
+        print(f"wrote {args.out}")
+    return 0
+
+
 def cmd_envs() -> int:
     from drivelab.envs.registration import metadrive_ids
 
-    print("\n".join(metadrive_ids()))
+    from drivelab.envs.registration import TASKS
+
+    print("\n".join([*metadrive_ids(), *TASKS]))
     print("(and any Gymnasium id: CartPole-v1, LunarLander-v3, CarRacing-v3, ...)")
     return 0
 
@@ -182,7 +232,7 @@ def main(argv: list[str] | None = None) -> None:
         else:
             if unknown:
                 parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-            code = cmd_eval(args) if args.command == "eval" else cmd_envs()
+            code = {"eval": cmd_eval, "reward": cmd_reward}.get(args.command, lambda a: cmd_envs())(args)
     except DrivelabError as exc:
         print(f"drivelab: error: {exc}", file=sys.stderr)
         sys.exit(2)

@@ -33,6 +33,13 @@ class EnvConfig:
     # "NxM": N steering x M throttle discrete actions over a [steering, throttle] Box action.
     action_grid: str | None = None
     max_steering: float = 0.6
+    # Steering-only 1-D actions at this constant throttle (notebook 003).
+    fixed_throttle: float | None = None
+    # Reward shaping: {term: {weight: w, ...params}} over cte, lane, native, progress
+    # (drivelab.envs.rewards); replaces the env's reward.
+    reward: dict[str, Any] | None = None
+    # Observation filters, applied in order: names or {name: params} (drivelab.envs.filters).
+    obs_filters: list[Any] = field(default_factory=list)
     # keyword overrides for gym.make, e.g. MetaDrive's {num_scenarios: 10, traffic_density: 0.2}
     kwargs: dict[str, Any] = field(default_factory=dict)
 
@@ -166,6 +173,12 @@ def _validate(cfg: TrainConfig) -> None:
         from drivelab.envs.wrappers import parse_grid
 
         parse_grid(cfg.env.action_grid)
+        if cfg.env.fixed_throttle is not None:
+            raise DrivelabError("config fields 'env.action_grid' and 'env.fixed_throttle' exclude each other")
+    if cfg.env.reward is not None:
+        from drivelab.envs.rewards import validate_reward_config
+
+        validate_reward_config(cfg.env.reward)
     if hasattr(cfg.algo_params, "validate"):
         cfg.algo_params.validate()
 

@@ -22,10 +22,12 @@ DRIVING_METRICS = {
 
 
 def episode_info(info: dict, index: int) -> dict[str, float]:
-    """Driving metrics of sub-env ``index`` from a vector env's batched ``info``."""
+    """Driving metrics of sub-env ``index`` from a vector env's batched ``info``, and the episode
+    sums of shaped reward terms (``reward/<term>``, see :mod:`drivelab.envs.rewards`)."""
     out = {}
-    for key, metric in DRIVING_METRICS.items():
-        if key in info and info.get(f"_{key}", np.ones(index + 1, bool))[index]:
+    for key in info:
+        metric = DRIVING_METRICS.get(key) or (key if key.startswith("reward/") else None)
+        if metric and info.get(f"_{key}", np.ones(index + 1, bool))[index]:
             out[metric] = float(info[key][index])
     return out
 

@@ -14,13 +14,16 @@ import gymnasium as gym
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 
 from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs
-from drivelab.envs.wrappers import DiscreteActionGrid, parse_grid
+from drivelab.envs.filters import apply_filters
+from drivelab.envs.rewards import RewardShaping
+from drivelab.envs.wrappers import DifferentialDrive, DiscreteActionGrid, FixedThrottle, parse_grid
 from drivelab.errors import DrivelabError
 
 if TYPE_CHECKING:
     from drivelab.config import EnvConfig
 
-__all__ = ["make_env", "make_vector_env", "env_spaces", "DiscreteActionGrid", "metadrive_ids", "needs_own_process"]
+__all__ = ["make_env", "make_vector_env", "env_spaces", "DiscreteActionGrid", "FixedThrottle", "DifferentialDrive",
+           "metadrive_ids", "needs_own_process"]
 
 
 def _check_id(env_id: str) -> None:
@@ -32,8 +35,10 @@ def _check_id(env_id: str) -> None:
 
 
 def make_env(env_id: str, kwargs: dict[str, Any] | None = None, action_grid: str | None = None,
-             max_steering: float = 0.6, render_mode: str | None = None) -> gym.Env:
-    """Build one environment.
+             max_steering: float = 0.6, render_mode: str | None = None, fixed_throttle: float | None = None,
+             reward: dict[str, Any] | None = None, obs_filters: list[Any] | None = None) -> gym.Env:
+    """Build one environment, then drivelab's wrappers in this order: reward shaping, action
+    adapter (discrete grid or fixed throttle), observation filters.
 
     Args:
         env_id: a registered Gymnasium id.
@@ -43,6 +48,9 @@ def make_env(env_id: str, kwargs: dict[str, Any] | None = None, action_grid: str
             actions (:class:`DiscreteActionGrid`).
         max_steering: steering magnitude of the outermost grid columns.
         render_mode: passed to ``gym.make`` (``"rgb_array"`` for videos).
+        fixed_throttle: steering-only actions at this throttle (:class:`FixedThrottle`).
+        reward: reward terms and weights (:mod:`drivelab.envs.rewards`).
+        obs_filters: observation filters (:mod:`drivelab.envs.filters`).
     """
     _check_id(env_id)
     try:
@@ -52,14 +60,21 @@ def make_env(env_id: str, kwargs: dict[str, Any] | None = None, action_grid: str
     except (TypeError, ValueError, KeyError, AssertionError, gym.error.Error) as exc:
         message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise DrivelabError(f"env '{env_id}' could not be created with kwargs {kwargs or {}}: {message}") from None
+    if reward:
+        env = RewardShaping(env, reward)
     if action_grid:
         steering_bins, throttle_bins = parse_grid(action_grid)
         env = DiscreteActionGrid(env, steering_bins, throttle_bins, max_steering=max_steering)
+    elif fixed_throttle is not None:
+        env = FixedThrottle(env, fixed_throttle)
+    if obs_filters:
+        env = apply_filters(env, obs_filters)
     return env
 
 
 def _env_fn(cfg: EnvConfig, render_mode: str | None):
-    return functools.partial(make_env, cfg.id, dict(cfg.kwargs), cfg.action_grid, cfg.max_steering, render_mode)
+    return functools.partial(make_env, cfg.id, dict(cfg.kwargs), cfg.action_grid, cfg.max_steering, render_mode,
+                             cfg.fixed_throttle, cfg.reward, list(cfg.obs_filters))
 
 
 def env_spaces(cfg: EnvConfig) -> tuple[gym.Space, gym.Space]:

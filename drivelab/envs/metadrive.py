@@ -16,8 +16,13 @@ What this adapter adds to ``metadrive.MetaDriveEnv``:
   reported as ``truncated``, never ``terminated``.
 * **A lean, stable ``info``** (MetaDrive's full dict costs time in vector envs at every step):
   ``success``, ``crash`` and ``out_of_road`` (did it happen in this episode so far),
-  ``route_completion`` (0..1), ``cost``, ``speed`` (m/s) and ``scenario``. Pass ``full_info=True`` for
-  MetaDrive's own dict as well.
+  ``route_completion`` (0..1), ``cost``, ``speed`` (m/s) and ``scenario``, plus the lane geometry
+  that driving rewards and metrics are written against (:func:`lane_geometry`): ``cte``,
+  ``heading_error``, ``speed_along_lane``, ``collided`` (this step) and ``native_reward``.
+  Pass ``full_info=True`` for MetaDrive's own dict as well.
+* **Observations**: ``observation="state"`` (259-d lidar/state vector) or ``"topdown"``
+  (MetaDrive's multi-channel bird's-eye raster, uint8 (84, 84, 5): road, lane lines, navigation,
+  past positions; drawn with pygame, no 3D assets).
 
 Only one MetaDrive engine can live in a process: build vector envs with
 :func:`drivelab.envs.make_vector_env`, which puts each one in its own subprocess.
@@ -26,6 +31,7 @@ Only one MetaDrive engine can live in a process: build vector envs with
 from __future__ import annotations
 
 import logging
+import math
 import os
 from typing import Any
 
@@ -66,6 +72,25 @@ def _needs_3d_assets(config: dict) -> str | None:
     return None
 
 
+def lane_geometry(agent) -> dict[str, float]:
+    """Where the car is relative to its current lane, from MetaDrive's lane object.
+
+    Returns:
+        cte: signed cross-track error in metres, the distance from the lane centre line,
+            positive when the car is left of it (MetaDrive's lane frame has its lateral axis
+            pointing right, so this is minus MetaDrive's lateral coordinate);
+        heading_error: car heading minus lane heading at the car's position, in radians wrapped
+            to [-pi, pi), positive when the car points left of the lane direction;
+        speed_along_lane: speed * cos(heading_error), m/s (negative when driving backwards).
+    """
+    lane = agent.lane
+    longitudinal, lateral = lane.local_coordinates(agent.position)
+    heading_error = agent.heading_theta - lane.heading_theta_at(longitudinal)
+    heading_error = (heading_error + math.pi) % (2 * math.pi) - math.pi
+    return {"cte": float(-lateral), "heading_error": float(heading_error),
+            "speed_along_lane": float(agent.speed * math.cos(heading_error))}
+
+
 def _disable_asset_download() -> None:
     """Stop MetaDrive's engine from fetching its 3D asset pack from the internet on start-up.
 
@@ -94,8 +119,16 @@ class MetaDriveGym(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, config: dict | None = None, render_mode: str | None = None, safe: bool = False,
-                 full_info: bool = False, render_size: tuple[int, int] = (400, 400), **overrides: Any):
+                 full_info: bool = False, render_size: tuple[int, int] = (400, 400), observation: str = "state",
+                 **overrides: Any):
+        # pygame draws the top-down views; headless machines have no display or sound card.
+        os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+        os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
         merged = {**DEFAULTS, **(config or {}), **overrides}
+        if observation == "topdown":
+            merged = {"norm_pixel": False, **merged}  # uint8 images: 4x smaller, the CNN scales them
+        elif observation != "state":
+            raise DrivelabError(f"MetaDrive observation must be 'state' or 'topdown', got {observation!r}")
         needs_assets = _needs_3d_assets(merged)
         if needs_assets and not assets_installed():
             raise DrivelabError(
@@ -107,9 +140,13 @@ class MetaDriveGym(gym.Env):
             raise DrivelabError(f"MetaDrive render_mode must be None or 'rgb_array' (top-down), got {render_mode!r}")
         _disable_asset_download()
         from metadrive.envs import MetaDriveEnv, SafeMetaDriveEnv
+        from metadrive.envs.top_down_env import TopDownMetaDrive
 
+        if observation == "topdown" and safe:
+            raise DrivelabError("MetaDrive top-down observations are available for MetaDriveEnv, not SafeMetaDriveEnv")
+        env_cls = TopDownMetaDrive if observation == "topdown" else SafeMetaDriveEnv if safe else MetaDriveEnv
         try:
-            self._env = (SafeMetaDriveEnv if safe else MetaDriveEnv)(merged)
+            self._env = env_cls(merged)
         except (KeyError, ValueError, AssertionError, TypeError) as exc:
             raise DrivelabError(f"MetaDrive rejected its config: {exc}") from None
         self.render_mode = render_mode
@@ -142,10 +179,11 @@ class MetaDriveGym(gym.Env):
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self._env.step(action)
-        return obs, float(reward), bool(terminated), bool(truncated), self._info(info, int(self._env.current_seed))
+        return obs, float(reward), bool(terminated), bool(truncated), self._info(info, int(self._env.current_seed), reward)
 
-    def _info(self, info: dict, scenario: int) -> dict:
-        self._crashed |= bool(info.get("crash", False))
+    def _info(self, info: dict, scenario: int, reward: float = 0.0) -> dict:
+        collided = bool(info.get("crash", False))
+        self._crashed |= collided
         self._left_road |= bool(info.get("out_of_road", False))
         lean = {
             "success": bool(info.get("arrive_dest", False)),
@@ -155,6 +193,9 @@ class MetaDriveGym(gym.Env):
             "cost": float(info.get("cost", 0.0)),
             "speed": float(info.get("velocity", 0.0)),  # m/s
             "scenario": scenario,
+            "collided": collided,
+            "native_reward": float(reward),
+            **lane_geometry(self._env.agent),
         }
         if self.full_info:
             lean["metadrive"] = info

@@ -14,6 +14,17 @@ MetaDrive-1000envs-v0       1000        1000           large training set
 
 ``SafeMetaDrive-*`` are the same splits of MetaDrive's safety task (more traffic accidents,
 crashes do not end the episode, a cost signal in ``info["cost"]``).
+
+Driving tasks (defaults for learning a skill, trainable by every algorithm that fits the action
+space):
+
+* ``drivelab/MetaDriveLaneFollow-v0``: empty MetaDrive roads (100 scenarios from seed 1000), state
+  observations, notebook 003's cross-track-error reward plus route progress; ``fixed_throttle=0.3``
+  gives notebook 003's steering-only control.
+* ``drivelab/MetaDriveTopDown-v0``: MetaDrive with uint8 (84, 84, 5) bird's-eye observations for
+  CNN agents (no 3D assets needed).
+* ``drivelab/DuckietownLaneFollow-v0``: Duckietown camera lane following, an optional extra
+  (``make duckietown``).
 """
 
 from __future__ import annotations
@@ -21,6 +32,8 @@ from __future__ import annotations
 import gymnasium as gym
 
 METADRIVE_ENTRY_POINT = "drivelab.envs.metadrive:MetaDriveGym"
+LANE_FOLLOW_ENTRY_POINT = "drivelab.envs.tasks:lane_follow"
+DUCKIETOWN_ENTRY_POINT = "drivelab.envs.duckietown:DuckietownLaneFollow"
 
 # (id suffix, start_seed, num_scenarios)
 _METADRIVE_SPLITS = (
@@ -43,11 +56,23 @@ def needs_own_process(env_id: str) -> bool:
         entry_point = gym.spec(env_id).entry_point
     except gym.error.Error:
         return False
-    return isinstance(entry_point, str) and (entry_point == METADRIVE_ENTRY_POINT or entry_point.startswith("metadrive"))
+    return isinstance(entry_point, str) and (entry_point in (METADRIVE_ENTRY_POINT, LANE_FOLLOW_ENTRY_POINT)
+                                             or entry_point.startswith("metadrive"))
+
+
+TASKS = {
+    "drivelab/MetaDriveLaneFollow-v0": (LANE_FOLLOW_ENTRY_POINT, {}),
+    "drivelab/MetaDriveTopDown-v0": (METADRIVE_ENTRY_POINT,
+                                     {"observation": "topdown", "start_seed": 1000, "num_scenarios": 100}),
+    "drivelab/DuckietownLaneFollow-v0": (DUCKIETOWN_ENTRY_POINT, {}),
+}
 
 
 def register_envs() -> None:
     """Register drivelab's ids with Gymnasium. Idempotent; the simulators are imported lazily."""
+    for env_id, (entry_point, kwargs) in TASKS.items():
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=entry_point, kwargs=kwargs)
     for prefix, safe in (("MetaDrive", False), ("SafeMetaDrive", True)):
         for suffix, start_seed, num_scenarios in _METADRIVE_SPLITS:
             env_id = f"{prefix}-{suffix}"

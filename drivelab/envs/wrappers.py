@@ -55,3 +55,49 @@ class DiscreteActionGrid(gym.ActionWrapper):
 
     def action(self, action) -> np.ndarray:
         return self.table[int(action)]
+
+
+class FixedThrottle(gym.ActionWrapper):
+    """Steering-only control at a constant throttle (notebook 003): the agent's action is a 1-D
+    Box [steering] in [-1, 1]; the env receives [steering, throttle]."""
+
+    def __init__(self, env: gym.Env, throttle: float = 0.3):
+        super().__init__(env)
+        space = env.action_space
+        if not (isinstance(space, gym.spaces.Box) and space.shape == (2,)):
+            raise DrivelabError(f"env.fixed_throttle needs a Box(2,) [steering, throttle] action space, got {space}")
+        if not -1.0 <= throttle <= 1.0:
+            raise DrivelabError(f"env.fixed_throttle must be in [-1, 1], got {throttle}")
+        self.throttle = float(throttle)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def action(self, action) -> np.ndarray:
+        return np.array([float(np.asarray(action).reshape(-1)[0]), self.throttle], np.float32)
+
+
+def wheel_velocities(steering: float | np.ndarray, throttle: float | np.ndarray, gain: float = 1.0) -> np.ndarray:
+    """(steering, throttle) -> (left, right) wheel velocities of a differential-drive robot.
+
+    Forward speed is the wheels' mean and turning their difference: left = throttle - gain *
+    steering, right = throttle + gain * steering (steering > 0 turns left: the right wheel runs
+    faster). When a wheel would exceed [-1, 1], both are scaled down together, so the ratio, and
+    therefore the turning radius, is kept.
+    """
+    left = np.asarray(throttle, np.float64) - gain * np.asarray(steering, np.float64)
+    right = np.asarray(throttle, np.float64) + gain * np.asarray(steering, np.float64)
+    peak = np.maximum(1.0, np.maximum(np.abs(left), np.abs(right)))
+    return np.stack([left / peak, right / peak], axis=-1).astype(np.float32)
+
+
+class DifferentialDrive(gym.ActionWrapper):
+    """Expose [steering, throttle] in [-1, 1]^2 for an env driven by (left, right) wheel
+    velocities, such as Duckietown."""
+
+    def __init__(self, env: gym.Env, gain: float = 1.0):
+        super().__init__(env)
+        self.gain = gain
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+
+    def action(self, action) -> np.ndarray:
+        steering, throttle = np.asarray(action, np.float64).reshape(2)
+        return wheel_velocities(steering, throttle, self.gain)

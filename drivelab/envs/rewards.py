@@ -1,0 +1,134 @@
+"""Reward shaping for driving: named terms with weights, chosen in config.
+
+A reward config maps term names to their parameters (``weight`` scales the term)::
+
+    reward:
+      cte: {weight: 1.0, scale: 1.0, max_cte: 1.5, crash: -10.0}   # notebook 003
+      lane: {weight: 0.1}                                           # notebook 004
+      native: {weight: 0.0}
+
+Each term is a pure function of the step's ``info`` (the lane geometry drivelab's driving envs
+report: ``cte``, ``heading_error``, ``speed``, ``speed_along_lane``, ``collided``,
+``out_of_road``, ``route_completion``, ``native_reward``) and the previous step's info (for
+progress). :class:`RewardShaping` replaces the env's reward by the weighted sum, reports each
+term's episode sum as ``info["reward/<term>"]`` (logged as ``episode/reward/<term>``, so a user
+sees which term drives the behaviour), and ends the episode where a term says so.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import gymnasium as gym
+
+from drivelab.errors import DrivelabError
+
+
+@dataclass(frozen=True)
+class TermResult:
+    value: float
+    terminate: bool = False
+
+
+def cte_reward(info: dict, prev: dict | None, scale: float = 1.0, max_cte: float = 1.5, crash: float = -10.0) -> TermResult:
+    """Notebook 003's cross-track-error reward: scale * (1 - (|cte| / max_cte)^2) near the lane
+    centre; ``crash`` and the end of the episode on a collision, leaving the road, or
+    |cte| > max_cte."""
+    cte = abs(info["cte"])
+    if info.get("collided") or info.get("out_of_road") or cte > max_cte:
+        return TermResult(crash, terminate=True)
+    return TermResult(scale * (1.0 - (cte / max_cte) ** 2))
+
+
+def lane_reward(info: dict, prev: dict | None, w_speed: float = 1.0, w_dist: float = 10.0, w_col: float = 40.0) -> TermResult:
+    """Notebook 004's lane reward (gym-duckietown's): w_speed * speed * dot_dir - w_dist * |dist|
+    + w_col * collision_penalty, with dot_dir = cos(heading error), dist = CTE (m), and a
+    collision penalty of -1 on a collision step (Duckietown's proximity penalty is <= 0)."""
+    dot_dir = math.cos(info["heading_error"])
+    penalty = -1.0 if info.get("collided") else 0.0
+    return TermResult(w_speed * info["speed"] * dot_dir - w_dist * abs(info["cte"]) + w_col * penalty)
+
+
+def native_reward(info: dict, prev: dict | None) -> TermResult:
+    """The simulator's own reward (MetaDrive: progress along the route, speed, and penalties)."""
+    return TermResult(info.get("native_reward", 0.0))
+
+
+def progress_reward(info: dict, prev: dict | None, scale: float = 100.0) -> TermResult:
+    """scale * (route completion gained this step): 100 = the whole route is worth 100."""
+    before = prev["route_completion"] if prev is not None else info["route_completion"]
+    return TermResult(scale * (info["route_completion"] - before))
+
+
+TERMS: dict[str, Callable[..., TermResult]] = {
+    "cte": cte_reward, "lane": lane_reward, "native": native_reward, "progress": progress_reward,
+}
+
+
+def validate_reward_config(config: dict[str, Any], where: str = "env.reward") -> dict[str, dict]:
+    """Check term names and parameters; returns {term: params} with ``weight`` split off later."""
+    if not isinstance(config, dict) or not config:
+        raise DrivelabError(f"{where} must map reward terms ({', '.join(TERMS)}) to their parameters")
+    clean = {}
+    for name, params in config.items():
+        if name not in TERMS:
+            raise DrivelabError(f"{where}: unknown reward term '{name}' (choose from {', '.join(TERMS)})")
+        params = dict(params or {})
+        weight = params.pop("weight", 1.0)
+        try:
+            TERMS[name](_PROBE_INFO, None, **params)
+        except TypeError as exc:
+            raise DrivelabError(f"{where}.{name}: {exc}".replace(f"{TERMS[name].__name__}() ", "")) from None
+        if not isinstance(weight, (int, float)):
+            raise DrivelabError(f"{where}.{name}.weight must be a number, got {weight!r}")
+        clean[name] = {"weight": float(weight), **params}
+    return clean
+
+
+_PROBE_INFO = {"cte": 0.0, "heading_error": 0.0, "speed": 0.0, "speed_along_lane": 0.0, "collided": False,
+               "out_of_road": False, "route_completion": 0.0, "native_reward": 0.0}
+
+
+def score(config: dict[str, dict], info: dict, prev: dict | None) -> tuple[float, dict[str, float], bool]:
+    """(total reward, weighted value of each term, terminate?) of one step under ``config``."""
+    total, parts, terminate = 0.0, {}, False
+    for name, params in config.items():
+        params = dict(params)
+        weight = params.pop("weight", 1.0)
+        result = TERMS[name](info, prev, **params)
+        parts[name] = weight * result.value
+        total += parts[name]
+        terminate |= result.terminate
+    return total, parts, terminate
+
+
+class RewardShaping(gym.Wrapper):
+    """Replace the env's reward by a weighted sum of named terms (see the module docstring).
+
+    ``info["reward/<term>"]`` holds each term's weighted sum over the episode so far.
+    """
+
+    def __init__(self, env: gym.Env, config: dict[str, Any]):
+        super().__init__(env)
+        self.config = validate_reward_config(config)
+        self._prev: dict | None = None
+        self._sums = dict.fromkeys(self.config, 0.0)
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self._prev = info
+        self._sums = dict.fromkeys(self.config, 0.0)
+        return obs, {**info, **{f"reward/{k}": 0.0 for k in self.config}}
+
+    def step(self, action):
+        obs, _, terminated, truncated, info = self.env.step(action)
+        for key in ("cte", "heading_error", "speed"):
+            if key not in info:
+                raise DrivelabError(f"reward shaping needs lane geometry in info ('{key}'); this env does not report it")
+        reward, parts, end = score(self.config, info, self._prev)
+        self._prev = info
+        for name, value in parts.items():
+            self._sums[name] += value
+        return obs, reward, terminated or end, truncated, {**info, **{f"reward/{k}": v for k, v in self._sums.items()}}

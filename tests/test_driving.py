@@ -1,0 +1,185 @@
+"""Driving tasks: lane geometry, reward terms, observation filters, action adapters, reward tools."""
+
+import json
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import drivelab  # noqa: F401
+from drivelab.envs import make_env
+from drivelab.envs.filters import apply_filters, binarize, crop, sobel
+from drivelab.envs.rewards import cte_reward, lane_reward, progress_reward, score, validate_reward_config
+from drivelab.envs.wrappers import DifferentialDrive, FixedThrottle, wheel_velocities
+from drivelab.episodes import episode_info
+from drivelab.errors import DrivelabError
+
+
+def _straight_road(lateral: float):
+    return make_env("MetaDrive-validation-v0", {"map": "S", "traffic_density": 0.0,
+                                                "vehicle_config": {"spawn_lateral": lateral}})
+
+
+@pytest.mark.parametrize("lateral", [1.0, -1.0])
+def test_cte_sign_and_magnitude_on_a_straight_lane(lateral):
+    env = _straight_road(lateral)
+    try:
+        _, info = env.reset(seed=0)
+        # MetaDrive's lane frame has its lateral axis to the right; drivelab's CTE is + to the left.
+        assert info["cte"] == pytest.approx(-lateral, abs=0.05)
+        assert abs(info["heading_error"]) < 0.01
+    finally:
+        env.close()
+
+
+def test_steering_left_makes_cte_and_heading_error_positive():
+    env = _straight_road(0.0)
+    try:
+        env.reset(seed=0)
+        for _ in range(15):
+            _, _, _, _, info = env.step(np.array([0.5, 0.3], np.float32))  # steering > 0 turns left
+        assert info["cte"] > 0.05 and info["heading_error"] > 0.02
+        assert info["speed_along_lane"] == pytest.approx(info["speed"] * math.cos(info["heading_error"]), rel=1e-6)
+    finally:
+        env.close()
+
+
+def test_reward_terms_by_hand():
+    info = {"cte": 0.75, "heading_error": math.pi / 3, "speed": 2.0, "collided": False, "out_of_road": False,
+            "route_completion": 0.30, "native_reward": 0.4}
+    assert cte_reward(info, None, scale=5, max_cte=1.5, crash=-200).value == pytest.approx(5 * (1 - 0.25))
+    beyond = cte_reward({**info, "cte": -1.6}, None, max_cte=1.5, crash=-200)
+    assert beyond.value == -200 and beyond.terminate
+    crashed = cte_reward({**info, "collided": True}, None, crash=-200)
+    assert crashed.value == -200 and crashed.terminate
+    assert lane_reward(info, None).value == pytest.approx(1.0 * 2.0 * 0.5 - 10 * 0.75)
+    assert lane_reward({**info, "collided": True}, None).value == pytest.approx(1.0 - 7.5 - 40)
+    assert progress_reward(info, {**info, "route_completion": 0.25}).value == pytest.approx(5.0)
+    total, parts, end = score(validate_reward_config({"cte": {"weight": 2.0, "max_cte": 1.5}, "native": {"weight": 0.5}}),
+                              info, None)
+    assert parts == pytest.approx({"cte": 2 * 0.75, "native": 0.2}) and total == pytest.approx(1.7) and not end
+
+
+def test_reward_config_errors_name_the_term():
+    with pytest.raises(DrivelabError, match="unknown reward term 'speedy'"):
+        validate_reward_config({"speedy": {}})
+    with pytest.raises(DrivelabError, match="cte"):
+        validate_reward_config({"cte": {"max_ctee": 2}})
+
+
+def test_shaped_reward_terms_reach_the_episode_metrics():
+    env = make_env("drivelab/MetaDriveLaneFollow-v0", {"horizon": 20}, fixed_throttle=0.3)
+    try:
+        assert env.action_space.shape == (1,)
+        env.reset(seed=1)
+        for _ in range(20):
+            _, _, terminated, truncated, info = env.step(np.zeros(1, np.float32))
+            if terminated or truncated:
+                break
+        assert truncated and info["reward/cte"] > 15
+        batched = {k: np.array([v]) for k, v in info.items() if k.startswith("reward/") or k == "route_completion"}
+        assert set(episode_info(batched, 0)) >= {"reward/cte", "reward/progress", "route_completion"}
+    finally:
+        env.close()
+
+
+def test_sobel_on_a_step_edge():
+    image = np.zeros((6, 8, 1), np.uint8)
+    image[:, 4:] = 255
+    edges = sobel(image)
+    assert edges.dtype == np.float32 and edges.shape == (6, 8, 1)
+    assert np.all(edges[:, :3] == 0) and np.all(edges[:, 5:] == 0)       # flat regions
+    assert np.all(edges[:, 3:5] > 0.5)                                      # the step, both sides
+
+
+def test_binarize_and_crop():
+    image = np.array([[0.1, 0.5, 0.9]], np.float32)[..., None]
+    np.testing.assert_array_equal(binarize(image, threshold=0.5)[..., 0], [[0, 0, 1]])
+    big = np.arange(10 * 12).reshape(10, 12, 1)
+    box = crop(big, top=2, bottom=3, left=1, right=4)
+    assert box.shape == (5, 7, 1) and box[0, 0, 0] == big[2, 1, 0] and box[-1, -1, 0] == big[6, 7, 0]
+
+
+class _Camera(gym.Env):
+    observation_space = gym.spaces.Box(0, 255, (40, 60, 3), np.uint8)
+    action_space = gym.spaces.Box(-1, 1, (2,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        return np.full((40, 60, 3), 200, np.uint8), {}
+
+    def step(self, action):
+        return np.full((40, 60, 3), 100, np.uint8), 0.0, False, False, {}
+
+
+def test_filter_chain_in_config_order():
+    env = apply_filters(_Camera(), ["grayscale", {"crop": {"top": 10}}, {"resize": {"shape": [16, 24]}}, "to_float",
+                                    "sobel", {"binarize": {"threshold": 0.1}}, {"frame_stack": {"n": 3}}])
+    assert env.observation_space.shape == (16, 24, 3)
+    obs, _ = env.reset()
+    assert obs.shape == (16, 24, 3) and obs.dtype == np.float32 and set(np.unique(obs)) <= {0.0, 1.0}
+    with pytest.raises(DrivelabError, match="unknown filter 'blur'"):
+        apply_filters(_Camera(), ["blur"])
+    with pytest.raises(DrivelabError, match="crop"):
+        apply_filters(_Camera(), [{"crop": {"upper": 3}}])
+
+
+def test_wheel_velocities():
+    np.testing.assert_allclose(wheel_velocities(0.0, 0.5), [0.5, 0.5])        # straight
+    np.testing.assert_allclose(wheel_velocities(0.5, 0.5), [0.0, 1.0])        # left: right wheel faster
+    np.testing.assert_allclose(wheel_velocities(-0.5, 0.0), [0.5, -0.5])      # turn on the spot, right
+    np.testing.assert_allclose(wheel_velocities(1.0, 1.0), [0.0, 1.0])        # (0, 2) scaled, ratio kept
+    env = DifferentialDrive(_Camera())
+    np.testing.assert_allclose(env.action(np.array([0.5, 0.5])), [0.0, 1.0])
+
+
+def test_fixed_throttle_action_shape():
+    env = FixedThrottle(_Camera(), throttle=0.3)
+    assert env.action_space.shape == (1,)
+    np.testing.assert_allclose(env.action(np.array([0.2])), [0.2, 0.3])
+    with pytest.raises(DrivelabError, match="fixed_throttle"):
+        FixedThrottle(_Camera(), throttle=2.0)
+
+
+def test_top_down_task_gives_uint8_images_for_a_cnn():
+    env = make_env("drivelab/MetaDriveTopDown-v0")
+    try:
+        obs, _ = env.reset(seed=0)
+        assert env.observation_space.shape == (84, 84, 5) and obs.dtype == np.uint8
+        from drivelab.nets import CNNEncoder
+
+        assert CNNEncoder(env.observation_space).out_dim == 512
+    finally:
+        env.close()
+
+
+def test_duckietown_extra_is_clear_when_missing_or_runs_when_installed():
+    try:
+        import gym_duckietown  # noqa: F401
+    except ImportError:
+        with pytest.raises(DrivelabError, match="make duckietown"):
+            make_env("drivelab/DuckietownLaneFollow-v0")
+        pytest.skip("the Duckietown extra is not installed here (make duckietown)")
+    env = make_env("drivelab/DuckietownLaneFollow-v0")
+    try:
+        obs, info = env.reset(seed=0)
+        assert obs.shape == (60, 80, 3) and "cte" in info
+        obs, reward, *_ = env.step(np.array([0.0, 0.5], np.float32))
+        assert np.isfinite(reward)
+    finally:
+        env.close()
+
+
+def test_reward_plot_and_compare_cli(run_cli, tmp_path):
+    out = run_cli("reward", "plot", "--reward", "configs/rewards/cte.yaml", "--out", tmp_path / "r.png")
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "r.png").stat().st_size > 10_000
+    out = run_cli("reward", "compare", "--rewards", "configs/rewards/cte.yaml", "configs/rewards/lane.yaml",
+                  "configs/rewards/native_progress.yaml", "--policy", "lane-keeping", "--episodes", "2",
+                  "--max-steps", "60", "--out", tmp_path / "c.png", "--json")
+    assert out.returncode == 0, out.stderr
+    table = json.loads(out.stdout.strip().splitlines()[-1])["table"]
+    assert set(table) == {"cte", "lane", "native_progress"}
+    assert table["cte"]["return_mean"] > 0 and (tmp_path / "c.png").is_file()
+    bad = run_cli("reward", "compare", "--rewards", "missing.yaml")
+    assert bad.returncode == 2 and "missing.yaml" in bad.stderr and "Traceback" not in bad.stderr
