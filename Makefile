@@ -7,7 +7,7 @@ BIN    := $(VENV)/bin
 TORCH  ?= torch==2.13.0
 DEMO   := runs/demo
 
-.PHONY: demo test test-fast install clean
+.PHONY: demo test test-fast install duckietown clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -34,5 +34,20 @@ test: install
 test-fast: install
 	$(BIN)/python -m pytest -q -m "not slow"
 
+# The Duckietown extra lives in its own environment: its pins (extras/duckietown-constraints.txt)
+# would break the main one. Its OpenGL renderer needs a display: xvfb-run on headless machines.
+DUCKIE := .venv-duckietown
+$(DUCKIE)/.installed: pyproject.toml extras/duckietown-constraints.txt
+	$(PYTHON) -m venv $(DUCKIE)
+	$(DUCKIE)/bin/python -m pip install --quiet --upgrade pip
+	$(DUCKIE)/bin/pip install --quiet "$(TORCH)"
+	$(DUCKIE)/bin/pip install --quiet -c extras/duckietown-constraints.txt duckietown-gym-daffy -e ".[dev]"
+	@command -v xvfb-run >/dev/null || (apt-get update -qq && apt-get install -y -qq xvfb) \
+		|| echo "install xvfb (apt-get install xvfb) to run Duckietown without a display"
+	@touch $@
+
+duckietown: $(DUCKIE)/.installed
+	xvfb-run -a $(DUCKIE)/bin/python -m pytest -q tests/test_driving.py -k duckietown
+
 clean:
-	rm -rf $(VENV) runs
+	rm -rf $(VENV) $(DUCKIE) runs

@@ -163,6 +163,9 @@ def format_eval(summary: dict, env_id: str, checkpoint: Path) -> str:
     labels = {"success_rate": "success rate", "crash_rate": "crash rate", "out_of_road_rate": "out-of-road rate",
               "route_completion": "route completion"}
     rows += [f"  {label:<18}{100 * summary[key]:9.1f} %" for key, label in labels.items() if key in summary]
+    if "mean_abs_cte" in summary:
+        rows.append(f"  {'mean |CTE|':<18}{summary['mean_abs_cte']:10.3f} m")
+    rows += [f"  {key:<18}{value:10.2f}" for key, value in summary.items() if key.startswith("reward/")]
     return "\n".join(rows)
 
 

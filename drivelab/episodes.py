@@ -18,6 +18,7 @@ DRIVING_METRICS = {
     "crash": "crash_rate",
     "out_of_road": "out_of_road_rate",
     "route_completion": "route_completion",
+    "mean_abs_cte": "mean_abs_cte",          # metres from the lane centre, averaged over the episode
 }
 
 

@@ -16,7 +16,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from drivelab.checkpoint import load_checkpoint, restore
 from drivelab.config import EnvConfig, build_config
 from drivelab.envs import env_spaces, make_vector_env
-from drivelab.episodes import DRIVING_METRICS, episode_info
+from drivelab.episodes import episode_info
 from drivelab.errors import DrivelabError
 
 
@@ -48,8 +48,7 @@ def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, determin
     obs, _ = envs.reset(seed=[seed + i for i in range(n)])
     returns = np.zeros(episodes)
     lengths = np.zeros(episodes, np.int64)
-    metrics = {name: np.zeros(episodes) for name in DRIVING_METRICS.values()}
-    seen_metrics: set[str] = set()
+    metrics: dict[str, np.ndarray] = {}     # metric -> (episodes,), for those the env reports
     running_return = np.zeros(n)
     running_length = np.zeros(n, np.int64)
     finished = 0
@@ -67,8 +66,7 @@ def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, determin
             if k < episodes:
                 returns[k], lengths[k] = running_return[i], running_length[i]
                 for name, value in episode_info(info, i).items():
-                    metrics[name][k] = value
-                    seen_metrics.add(name)
+                    metrics.setdefault(name, np.zeros(episodes))[k] = value
                 finished += 1
             episode_of[i] = next_episode
             next_episode += 1
@@ -77,7 +75,7 @@ def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, determin
         running_length[done] = 0
         if finished < episodes:
             obs, _ = envs.reset(seed=reset_seeds, options={"reset_mask": done})
-    return EvalResult(returns, lengths, {k: v for k, v in metrics.items() if k in seen_metrics})
+    return EvalResult(returns, lengths, metrics)
 
 
 def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None = None,

@@ -98,7 +98,7 @@ def test_sac_learns_from_images_with_a_cnn(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("algo, steps, threshold", [("sac", 8000, -250), ("td3", 8000, -250)])
+@pytest.mark.parametrize("algo, steps, threshold", [("sac", 8000, -250), ("td3", 12000, -250)])
 def test_sac_and_td3_swing_up_the_pendulum(algo, steps, threshold, tmp_path):
     cfg = build_config({"algo": algo, "steps": steps, "seed": 0, "run_dir": str(tmp_path / algo),
                         "env": {"id": "Pendulum-v1", "num_envs": 1},

@@ -30,6 +30,13 @@ INSTALL_HINT = ("Duckietown is an optional extra with its own environment: run `
 DUCKIETOWN_REWARD = {"lane": {"weight": 1.0, "w_speed": 1.0, "w_dist": 10.0, "w_col": 40.0}}
 
 
+def duckietown_available() -> bool:
+    """Whether the Duckietown extra (``gym_duckietown``) can be imported here."""
+    import importlib.util
+
+    return importlib.util.find_spec("gym_duckietown") is not None
+
+
 class DuckietownGym(gym.Env):
     """The Duckietown simulator with Gymnasium's API and drivelab's lane-geometry info."""
 
@@ -53,10 +60,12 @@ class DuckietownGym(gym.Env):
         if seed is not None:
             self._sim.seed(seed)
         obs = self._sim.reset()
+        self._abs_cte_sum, self._steps = 0.0, 0
         return np.asarray(obs, np.uint8), self._info()
 
     def step(self, action):
         obs, reward, done, _ = self._sim.step(np.asarray(action, np.float32))
+        self._steps += 1
         info = self._info()
         truncated = bool(done) and self._sim.step_count >= self.max_steps
         terminated = bool(done) and not truncated
@@ -70,13 +79,17 @@ class DuckietownGym(gym.Env):
         collided = sim.proximity_penalty2(sim.cur_pos, sim.cur_angle) < 0
         try:
             lane = sim.get_lane_pos2(sim.cur_pos, sim.cur_angle)
-            cte, heading = float(lane.dist), float(lane.angle_rad)
+            # gym-duckietown measures both to the right of the lane; drivelab's are + to the left.
+            cte, heading = -float(lane.dist), -float(lane.angle_rad)
             out_of_road = False
         except NotInLane:
             cte, heading, out_of_road = 0.0, 0.0, True
+        if self._steps:
+            self._abs_cte_sum += abs(cte)
+        # No route here (the loop has no destination), so no success or route completion.
         return {"cte": cte, "heading_error": heading, "speed": speed, "speed_along_lane": speed * math.cos(heading),
                 "collided": bool(collided), "crash": bool(collided), "out_of_road": out_of_road,
-                "success": False, "route_completion": 0.0}
+                "mean_abs_cte": self._abs_cte_sum / max(self._steps, 1)}
 
     def render(self):
         return self._sim.render_obs() if self.render_mode == "rgb_array" else None

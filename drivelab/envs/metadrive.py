@@ -175,16 +175,21 @@ class MetaDriveGym(gym.Env):
         obs, info = self._env.reset(seed=scenario)
         self._crashed = False
         self._left_road = False
+        self._abs_cte_sum, self._steps = 0.0, 0
         return obs, self._info(info, scenario)
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self._env.step(action)
+        self._steps += 1
         return obs, float(reward), bool(terminated), bool(truncated), self._info(info, int(self._env.current_seed), reward)
 
     def _info(self, info: dict, scenario: int, reward: float = 0.0) -> dict:
         collided = bool(info.get("crash", False))
         self._crashed |= collided
         self._left_road |= bool(info.get("out_of_road", False))
+        geometry = lane_geometry(self._env.agent)
+        if self._steps:
+            self._abs_cte_sum += abs(geometry["cte"])
         lean = {
             "success": bool(info.get("arrive_dest", False)),
             "crash": self._crashed,
@@ -195,7 +200,8 @@ class MetaDriveGym(gym.Env):
             "scenario": scenario,
             "collided": collided,
             "native_reward": float(reward),
-            **lane_geometry(self._env.agent),
+            **geometry,
+            "mean_abs_cte": self._abs_cte_sum / max(self._steps, 1),  # over this episode's steps so far
         }
         if self.full_info:
             lean["metadrive"] = info

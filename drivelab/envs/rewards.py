@@ -32,14 +32,24 @@ class TermResult:
     terminate: bool = False
 
 
-def cte_reward(info: dict, prev: dict | None, scale: float = 1.0, max_cte: float = 1.5, crash: float = -10.0) -> TermResult:
+def cte_reward(info: dict, prev: dict | None, scale: float = 1.0, max_cte: float = 1.5, crash: float = -10.0,
+               per: str = "step") -> TermResult:
     """Notebook 003's cross-track-error reward: scale * (1 - (|cte| / max_cte)^2) near the lane
     centre; ``crash`` and the end of the episode on a collision, leaving the road, or
-    |cte| > max_cte."""
+    |cte| > max_cte.
+
+    ``per="step"`` pays it every step, as notebook 003 did for a car at a fixed throttle. When the
+    agent controls the throttle, that makes standing still on the centre line optimal;
+    ``per="progress"`` pays it in proportion to the route completion gained this step instead
+    (scale = the whole route driven on the centre line), like MetaDrive's own lateral factor.
+    """
+    if per not in ("step", "progress"):
+        raise TypeError(f"per must be 'step' or 'progress', got {per!r}")
     cte = abs(info["cte"])
     if info.get("collided") or info.get("out_of_road") or cte > max_cte:
         return TermResult(crash, terminate=True)
-    return TermResult(scale * (1.0 - (cte / max_cte) ** 2))
+    centred = 1.0 - (cte / max_cte) ** 2
+    return TermResult(scale * centred * (_route_gained(info, prev) if per == "progress" else 1.0))
 
 
 def lane_reward(info: dict, prev: dict | None, w_speed: float = 1.0, w_dist: float = 10.0, w_col: float = 40.0) -> TermResult:
@@ -58,8 +68,11 @@ def native_reward(info: dict, prev: dict | None) -> TermResult:
 
 def progress_reward(info: dict, prev: dict | None, scale: float = 100.0) -> TermResult:
     """scale * (route completion gained this step): 100 = the whole route is worth 100."""
-    before = prev["route_completion"] if prev is not None else info["route_completion"]
-    return TermResult(scale * (info["route_completion"] - before))
+    return TermResult(scale * _route_gained(info, prev))
+
+
+def _route_gained(info: dict, prev: dict | None) -> float:
+    return info["route_completion"] - (prev["route_completion"] if prev is not None else info["route_completion"])
 
 
 TERMS: dict[str, Callable[..., TermResult]] = {

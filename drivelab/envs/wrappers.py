@@ -75,6 +75,39 @@ class FixedThrottle(gym.ActionWrapper):
         return np.array([float(np.asarray(action).reshape(-1)[0]), self.throttle], np.float32)
 
 
+class CruiseControl(gym.Wrapper):
+    """Steering-only control at a target speed: the agent's action is a 1-D Box [steering] and a
+    proportional controller sets the throttle, clip(gain * (target_speed - speed), -1, 1), from the
+    ``info["speed"]`` (m/s) of the previous step.
+
+    A fixed throttle on MetaDrive is a constant engine force, so the car speeds up until it cannot
+    take a curve; a Donkey car's throttle (notebook 003) behaves more like a speed setting.
+    """
+
+    def __init__(self, env: gym.Env, target_speed: float = 8.0, gain: float = 0.5):
+        super().__init__(env)
+        space = env.action_space
+        if not (isinstance(space, gym.spaces.Box) and space.shape == (2,)):
+            raise DrivelabError(f"target_speed needs a Box(2,) [steering, throttle] action space, got {space}")
+        if target_speed <= 0:
+            raise DrivelabError(f"target_speed must be > 0 m/s, got {target_speed}")
+        self.target_speed, self.gain = float(target_speed), float(gain)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+        self._speed = 0.0
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self._speed = float(info.get("speed", 0.0))
+        return obs, info
+
+    def step(self, action):
+        throttle = float(np.clip(self.gain * (self.target_speed - self._speed), -1.0, 1.0))
+        obs, reward, terminated, truncated, info = self.env.step(
+            np.array([float(np.asarray(action).reshape(-1)[0]), throttle], np.float32))
+        self._speed = float(info["speed"])
+        return obs, reward, terminated, truncated, info
+
+
 def wheel_velocities(steering: float | np.ndarray, throttle: float | np.ndarray, gain: float = 1.0) -> np.ndarray:
     """(steering, throttle) -> (left, right) wheel velocities of a differential-drive robot.
 

@@ -1,0 +1,76 @@
+"""Steps/s of drivelab's driving tasks with random actions, written as JSON. Not part of the tests.
+
+Each task is measured as a single env in this process (what `drivelab reward compare` and
+debugging see) and as a vector of `--num-envs` subprocess envs (what training sees):
+
+    python benchmarks/driving_tasks.py --seconds 20 --num-envs 2 --out driving_tasks.json
+
+The Duckietown task is measured only where its extra is installed (`make duckietown`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from onpolicy import random_steps_per_second  # benchmarks/ is on sys.path when run as a script
+
+from drivelab.config import EnvConfig
+from drivelab.envs import make_env
+from drivelab.envs.duckietown import duckietown_available
+
+TASKS = {
+    "lane-follow (state, [steering, throttle])": EnvConfig(id="drivelab/MetaDriveLaneFollow-v0"),
+    "lane-follow (state, steering at 8 m/s)": EnvConfig(id="drivelab/MetaDriveLaneFollow-v0",
+                                                        kwargs={"target_speed": 8.0}),
+    "top-down (84x84x5 uint8 images)": EnvConfig(id="drivelab/MetaDriveTopDown-v0"),
+    "top-down + grayscale, frame stack 4": EnvConfig(id="drivelab/MetaDriveTopDown-v0",
+                                                     obs_filters=["grayscale", {"frame_stack": 4}]),
+    "duckietown (60x80 camera)": EnvConfig(id="drivelab/DuckietownLaneFollow-v0"),
+}
+
+
+def single_env_steps_per_second(cfg: EnvConfig, seconds: float) -> float:
+    env = make_env(cfg.id, dict(cfg.kwargs), obs_filters=list(cfg.obs_filters))
+    try:
+        env.action_space.seed(0)
+        env.reset(seed=0)
+        steps, started = 0, time.perf_counter()
+        while time.perf_counter() - started < seconds:
+            _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+            steps += 1
+            if terminated or truncated:
+                env.reset()
+        return steps / (time.perf_counter() - started)
+    finally:
+        env.close()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=20.0, help="measurement time per task and setting")
+    parser.add_argument("--num-envs", type=int, default=2)
+    parser.add_argument("--out", help="also write the JSON here")
+    args = parser.parse_args()
+    results = []
+    for name, cfg in TASKS.items():
+        if "Duckietown" in cfg.id and not duckietown_available():
+            results.append({"task": name, "env": cfg.id, "skipped": "the Duckietown extra is not installed"})
+            continue
+        single = single_env_steps_per_second(cfg, args.seconds)
+        cfg.num_envs = args.num_envs
+        vector = random_steps_per_second(cfg, args.seconds)
+        results.append({"task": name, "env": cfg.id, "kwargs": cfg.kwargs, "obs_filters": cfg.obs_filters,
+                        "single_env_steps_per_s": single, f"vector_{args.num_envs}_envs_steps_per_s": vector})
+        print(f"{name:<42}{single:8.0f} steps/s   {args.num_envs} envs: {vector:8.0f} steps/s", file=sys.stderr)
+    text = json.dumps({"benchmark": "driving-tasks", "results": results}, indent=1)
+    print(text)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
