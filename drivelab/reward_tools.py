@@ -100,6 +100,8 @@ def record_episodes(env_id: str, policy: str, episodes: int, seed: int = 0, env_
 
         ckpt = load_checkpoint(policy)
         cfg = build_config(ckpt.state["config"])
+        if env_id == cfg.env.id:  # the training env's kwargs may shape the action space (target_speed)
+            env_kwargs = {**cfg.env.kwargs, **(env_kwargs or {})}
         env = make_env(env_id, env_kwargs, cfg.env.action_grid, cfg.env.max_steering, None, cfg.env.fixed_throttle,
                        None, cfg.env.obs_filters)
         net = get_algo(cfg.algo).build_policy(cfg, env.observation_space, env.action_space)

@@ -6,6 +6,7 @@ import math
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 
 import drivelab  # noqa: F401
 from drivelab.envs import make_env
@@ -178,6 +179,26 @@ def test_top_down_task_gives_uint8_images_for_a_cnn():
         env.close()
 
 
+@pytest.mark.parametrize("algo, env, params", [
+    ("ppo", {"id": "drivelab/MetaDriveTopDown-v0", "action_grid": "3x3"},            # CNN, discrete
+     {"num_steps": 64, "num_minibatches": 2, "update_epochs": 1}),
+    ("sac", {"id": "drivelab/MetaDriveLaneFollow-v0", "kwargs": {"target_speed": 8.0}},  # MLP, 1-D steering
+     {"learning_starts": 64, "batch_size": 32, "buffer_size": 1000, "hidden": [32], "eval_every": 0}),
+])
+def test_driving_tasks_train_with_each_family(algo, env, params, tmp_path):
+    from safetensors.torch import load_file
+
+    from drivelab.checkpoint import list_checkpoints
+    from drivelab.config import build_config
+    from drivelab.run import train
+
+    cfg = build_config({"algo": algo, "steps": 256, "seed": 0, "run_dir": str(tmp_path / algo),
+                        "env": {"num_envs": 2, **env}, algo: params})
+    train(cfg, progress=False)
+    tensors = load_file(str(list_checkpoints(tmp_path / algo)[-1] / "tensors.safetensors"))
+    assert all(torch.isfinite(t).all() for t in tensors.values() if t.is_floating_point())
+
+
 def test_duckietown_extra_is_clear_when_missing_or_runs_when_installed():
     try:
         import gym_duckietown  # noqa: F401
@@ -241,7 +262,7 @@ def test_ppo_learns_lane_following_better_than_random(tmp_path):
     from drivelab.evaluate import evaluate_checkpoint, run_episodes
     from drivelab.run import train
 
-    cfg = build_config({**read_yaml("configs/ppo_lanefollow.yaml"), "seed": 0, "run_dir": str(tmp_path / "lf")})
+    cfg = build_config({**read_yaml("configs/ppo_lanefollow.yaml"), "steps": 30000, "seed": 0, "run_dir": str(tmp_path / "lf")})
     train(cfg, progress=False)
     trained = evaluate_checkpoint(tmp_path / "lf", episodes=10)[0].summary()
     envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED)
@@ -250,6 +271,7 @@ def test_ppo_learns_lane_following_better_than_random(tmp_path):
     finally:
         envs.close()
     # Measured (seed 0, 30k steps): trained route 0.65, |CTE| 0.61 m; random route 0.03, |CTE| 0.33 m
-    # over its ~30-step episodes. 0.8 m is where the car's edge reaches the lane line.
+    # over its ~30-step episodes. 0.8 m is where the car's edge reaches the lane line. (The config's
+    # 80k steps reach route 0.73, |CTE| 0.46 m, 50% success.)
     assert trained["route_completion"] > random["route_completion"] + 0.3, (trained, random)
     assert trained["mean_abs_cte"] < 0.8, trained
