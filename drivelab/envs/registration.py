@@ -19,8 +19,9 @@ Driving tasks (defaults for learning a skill, trainable by every algorithm that 
 space):
 
 * ``drivelab/MetaDriveLaneFollow-v0``: empty MetaDrive roads (100 scenarios from seed 1000), state
-  observations, notebook 003's cross-track-error reward plus route progress; ``fixed_throttle=0.3``
-  gives notebook 003's steering-only control.
+  observations, notebook 003's cross-track-error reward paid per unit of route progress;
+  ``target_speed=8.0`` (a speed controller) or ``fixed_throttle=0.3`` (notebook 003) give
+  steering-only control.
 * ``drivelab/MetaDriveTopDown-v0``: MetaDrive with uint8 (84, 84, 5) bird's-eye observations for
   CNN agents (no 3D assets needed).
 * ``drivelab/DuckietownLaneFollow-v0``: Duckietown camera lane following, an optional extra
