@@ -1,8 +1,10 @@
 """Off-policy speed: env steps/s and gradient updates/s of DDPG, TD3 and SAC, as JSON.
 
 Measured on LunarLander-v3 with continuous actions, [400, 300] networks and batch 256 (the
-issue's setting): the update rate is timed on a filled buffer, the env rate over a short run
-with the policy acting. Not part of the test suite.
+issue's setting): the update rate is timed on a filled buffer, the env rate is the training
+loop's rate during heat-up (random actions into the replay buffer, no updates). A short warm-up
+run first keeps import and first-call costs out of the first algorithm's numbers. Not part of
+the test suite.
 
     python benchmarks/offpolicy_speed.py --out offpolicy_speed.json [--updates 500] [--compile]
 """
@@ -21,7 +23,7 @@ from drivelab.run import train
 
 def measure(algo: str, updates: int, steps: int, compile_: bool) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        # phase 1: env steps with the acting policy (no updates: learning_starts > steps)
+        # phase 1: env steps of the loop in heat-up (no updates: learning_starts > steps)
         cfg = build_config({"algo": algo, "steps": steps, "seed": 0, "run_dir": f"{tmp}/env",
                             "env": {"id": "LunarLander-v3", "num_envs": 1, "kwargs": {"continuous": True}},
                             algo: {"hidden": [400, 300], "batch_size": 256, "buffer_size": 100_000,
@@ -50,6 +52,7 @@ def main() -> None:
     parser.add_argument("--compile", action="store_true", help="torch.compile the networks")
     parser.add_argument("--out")
     args = parser.parse_args()
+    measure("ddpg", updates=10, steps=500, compile_=args.compile)   # warm-up, discarded
     results = {"benchmark": "offpolicy-speed", "env": "LunarLander-v3 (continuous)", "hidden": [400, 300],
                "batch_size": 256, "compile": args.compile,
                "algos": [measure(a, args.updates, args.steps, args.compile) for a in ("ddpg", "td3", "sac")]}

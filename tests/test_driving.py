@@ -10,7 +10,7 @@ import torch
 
 import drivelab  # noqa: F401
 from drivelab.envs import make_env
-from drivelab.envs.filters import apply_filters, binarize, crop, sobel
+from drivelab.envs.filters import apply_filters, binarize, crop, resize, sobel
 from drivelab.envs.rewards import cte_reward, lane_reward, progress_reward, score, validate_reward_config
 from drivelab.envs.wrappers import CruiseControl, DifferentialDrive, FixedThrottle, wheel_velocities
 from drivelab.episodes import episode_info
@@ -148,6 +148,27 @@ def test_filter_chain_in_config_order():
         apply_filters(_Camera(), ["blur"])
     with pytest.raises(DrivelabError, match="crop"):
         apply_filters(_Camera(), [{"crop": {"upper": 3}}])
+
+
+def test_resize_handles_more_channels_than_opencv():
+    """MetaDrive's top-down view has 5 channels; area resampling of 2x2 blocks is their mean."""
+    image = np.zeros((4, 6, 5), np.uint8)
+    image[:2, :2] = 40                      # top-left 2x2 block, every channel
+    image[..., 4] = 200                     # the fifth channel everywhere
+    small = resize(image, (2, 3))
+    assert small.shape == (2, 3, 5) and small.dtype == np.uint8
+    np.testing.assert_array_equal(small[..., 0], [[40, 0, 0], [0, 0, 0]])
+    np.testing.assert_array_equal(small[..., 4], np.full((2, 3), 200))
+
+    class TopDownLike(_Camera):
+        observation_space = gym.spaces.Box(0, 255, (40, 60, 5), np.uint8)
+
+        def reset(self, *, seed=None, options=None):
+            return np.full((40, 60, 5), 7, np.uint8), {}
+
+    env = apply_filters(TopDownLike(), [{"resize": {"shape": [20, 30]}}, {"frame_stack": {"n": 2}}])
+    obs, _ = env.reset()
+    assert env.observation_space.shape == obs.shape == (20, 30, 10) and (obs == 7).all()
 
 
 def test_wheel_velocities():

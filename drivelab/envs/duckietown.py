@@ -13,6 +13,7 @@ MetaDrive (``cte``, ``heading_error``, ``speed``, ``speed_along_lane``, ``collid
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Any
 
@@ -48,6 +49,7 @@ class DuckietownGym(gym.Env):
             from gym_duckietown.simulator import Simulator
         except ImportError:
             raise DrivelabError(f"gym_duckietown is not installed. {INSTALL_HINT}") from None
+        logging.getLogger("gym-duckietown").setLevel(logging.WARNING)  # it logs every reset at DEBUG
         self._sim = Simulator(map_name=map_name, camera_width=camera_width, camera_height=camera_height,
                               max_steps=max_steps, domain_rand=domain_rand, **simulator)
         self.observation_space = gym.spaces.Box(0, 255, (camera_height, camera_width, 3), np.uint8)

@@ -5,14 +5,16 @@
 Gymnasium's own wrappers do grayscale (``GrayscaleObservation``), resize (``ResizeObservation``),
 frame stacking (``FrameStackObservation``) and arbitrary transforms (``TransformObservation``);
 this module adds what is missing as small pure functions on (H, W, C) arrays: to_float, crop,
-Sobel edges, binarise, normalise. Images keep a trailing channel axis throughout, so the CNN
-encoder sees (H, W, C).
+Sobel edges, binarise, normalise, and resize for images with more than 4 channels (MetaDrive's
+top-down view has 5). Images keep a trailing channel axis throughout, so the CNN encoder sees
+(H, W, C).
 """
 
 from __future__ import annotations
 
 from typing import Any
 
+import cv2
 import gymnasium as gym
 import numpy as np
 from gymnasium.wrappers import FrameStackObservation, GrayscaleObservation, ResizeObservation, TransformObservation
@@ -43,6 +45,18 @@ def sobel(image: np.ndarray) -> np.ndarray:
         gy = ndimage.sobel(x, axis=0, mode="nearest")
         out[..., c] = np.hypot(gx, gy) / np.float32(4 * np.sqrt(2) * peak)
     return out
+
+
+def resize(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Area-resample an (H, W, C) image to `shape` = (height, width) for any number of channels.
+
+    OpenCV resizes at most 4 channels at once; MetaDrive's top-down image has 5 (and a frame
+    stack more), so the channels go through in groups of up to 4.
+    """
+    height, width = shape
+    groups = [cv2.resize(image[..., c:c + 4], (width, height), interpolation=cv2.INTER_AREA)
+              for c in range(0, image.shape[-1], 4)]
+    return np.concatenate([g.reshape(height, width, -1) for g in groups], axis=-1)
 
 
 def binarize(image: np.ndarray, threshold: float = 0.5) -> np.ndarray:
@@ -90,8 +104,12 @@ def apply_filters(env: gym.Env, specs: list[Any]) -> gym.Env:
         try:
             if name == "grayscale":
                 env = GrayscaleObservation(env, keep_dim=True)
-            elif name == "resize":
+            elif name == "resize" and space.shape[-1] <= 4:
                 env = ResizeObservation(env, tuple(params.pop("shape")))
+            elif name == "resize":  # more channels than OpenCV takes at once
+                shape = tuple(int(n) for n in params.pop("shape"))
+                env = _transform(env, lambda x, shape=shape: resize(x, shape),
+                                 float(np.min(space.low)), float(np.max(space.high)))
             elif name == "frame_stack":
                 env = _stack_to_channels(FrameStackObservation(env, int(params.pop("n", 4))))
             elif name == "to_float":

@@ -4,12 +4,12 @@ algorithm's config; `speed` is for the on-policy family (A2C, PPO, GRPO).
 Speed: raw vectorised env steps/s with random actions, training steps/s, and the trainer's
 overhead (the share of wall time spent neither stepping envs nor in gradient updates):
 
-    python benchmarks/onpolicy.py speed --algo ppo --config configs/ppo_metadrive.yaml --steps 8192
+    python benchmarks/training.py speed --algo ppo --config configs/ppo_metadrive.yaml --steps 8192
 
 Learning: train from a config, then evaluate deterministically:
 
-    python benchmarks/onpolicy.py learn --config configs/ppo_lunarlander.yaml --steps 300000 --episodes 20
-    python benchmarks/onpolicy.py learn --config configs/ppo_metadrive.yaml --minutes 20 \\
+    python benchmarks/training.py learn --config configs/ppo_lunarlander.yaml --steps 300000 --episodes 20
+    python benchmarks/training.py learn --config configs/ppo_metadrive.yaml --minutes 20 \\
         --eval-env MetaDrive-validation-v0 --episodes 100
 """
 
@@ -40,8 +40,9 @@ def load(args) -> object:
     return build_config(data)
 
 
-def random_steps_per_second(cfg, seconds: float = 20.0) -> float:
-    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.SAME_STEP)
+def random_steps_per_second(env_cfg, seconds: float = 20.0) -> float:
+    """Vectorised env steps/s with random actions for an `EnvConfig` (no policy, no learning)."""
+    envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.SAME_STEP)
     try:
         envs.action_space.seed(0)
         envs.reset(seed=0)
@@ -67,7 +68,7 @@ def speed(args) -> dict:
     cfg = load(args)
     with tempfile.TemporaryDirectory() as tmp:
         cfg.run_dir, cfg.steps = str(Path(tmp) / "run"), args.steps
-        raw = random_steps_per_second(cfg, args.seconds)
+        raw = random_steps_per_second(cfg.env, args.seconds)
         started = time.perf_counter()
         train(cfg, progress=False)
         wall = time.perf_counter() - started
@@ -95,7 +96,7 @@ def learn(args) -> dict:
     kwargs = dict(item.split("=", 1) for item in args.eval_kwarg)
     result, env_cfg, ckpt = evaluate_checkpoint(run_dir, episodes=args.episodes, env_id=args.eval_env,
                                                 env_kwargs={k: json.loads(v) for k, v in kwargs.items()})
-    return {"benchmark": "onpolicy-learn", "algo": cfg.algo, "env": cfg.env.id, "eval_env": env_cfg.id,
+    return {"benchmark": "learn", "algo": cfg.algo, "env": cfg.env.id, "eval_env": env_cfg.id,
             "steps": int(ckpt.name.split("_")[-1]), "train_wall_s": wall,
             "train_steps_per_s": int(ckpt.name.split("_")[-1]) / wall, "run_dir": str(run_dir), **result.summary()}
 
