@@ -148,6 +148,8 @@ def test_filter_chain_in_config_order():
         apply_filters(_Camera(), ["blur"])
     with pytest.raises(DrivelabError, match="crop"):
         apply_filters(_Camera(), [{"crop": {"upper": 3}}])
+    with pytest.raises(DrivelabError, match="frame_stack: parameters are a mapping"):
+        apply_filters(_Camera(), [{"frame_stack": 4}])
 
 
 def test_resize_handles_more_channels_than_opencv():

@@ -94,10 +94,16 @@ def _stack_to_channels(env: gym.Env) -> gym.Env:
 def apply_filters(env: gym.Env, specs: list[Any]) -> gym.Env:
     """Wrap ``env`` with each filter of ``specs`` in order; a spec is a name or {name: params}."""
     for spec in specs:
-        name, params = (spec, {}) if isinstance(spec, str) else next(iter(spec.items())) if isinstance(spec, dict) and len(spec) == 1 else (None, None)
-        if name is None:
+        if isinstance(spec, str):
+            name, params = spec, {}
+        elif isinstance(spec, dict) and len(spec) == 1:
+            (name, params), = spec.items()
+            if not isinstance(params, (dict, type(None))):
+                raise DrivelabError(f"env.obs_filters.{name}: parameters are a mapping such as "
+                                    f"{{frame_stack: {{n: 4}}}}, got {params!r}")
+            params = dict(params or {})
+        else:
             raise DrivelabError(f"env.obs_filters: each filter is a name or {{name: params}}, got {spec!r}")
-        params = dict(params or {})
         space = env.observation_space
         if not (isinstance(space, gym.spaces.Box) and len(space.shape) == 3):
             raise DrivelabError(f"env.obs_filters.{name}: needs (H, W, C) image observations, got {space}")
