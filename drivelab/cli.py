@@ -20,6 +20,7 @@ from typing import Any
 
 import yaml
 
+from drivelab.algos import ALGOS
 from drivelab.errors import DrivelabError
 
 # Fields that may change when a run is resumed; anything else would change the experiment.
@@ -63,7 +64,7 @@ def _train_parser(sub) -> None:
     p = sub.add_parser("train", help="train an agent", description="Train an agent. Any config field can be set with --section.field VALUE.")
     p.add_argument("--config", help="YAML config file")
     p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest checkpoint")
-    p.add_argument("--algo", help="algorithm (reinforce)")
+    p.add_argument("--algo", help=f"algorithm: {', '.join(ALGOS)}")
     p.add_argument("--env", help="Gymnasium env id, e.g. CartPole-v1 or MetaDrive-10env-v0")
     p.add_argument("--steps", type=int, help="total env steps to train for")
     p.add_argument("--seed", type=int)
