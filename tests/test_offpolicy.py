@@ -97,16 +97,20 @@ def test_sac_learns_from_images_with_a_cnn(tmp_path):
     assert any(k.startswith("module/policy/encoder.convs") for k in tensors)
 
 
+# Evaluations of the deterministic policy on Pendulum dip now and then (a few of the 10 start
+# states are not swung up). With [64, 64] at lr 1e-3 both learn by ~8k steps but dip to
+# -370..-850 at points between 7k and 12k (seeds 0 and 1). With [128, 128] at 5e-4 both stayed at
+# -108..-122 from 10k steps on (TD3 to 20k) for seeds 0 and 1, so a 12k-step check has margin.
 @pytest.mark.slow
-@pytest.mark.parametrize("algo, steps, threshold", [("sac", 8000, -250), ("td3", 12000, -250)])
-def test_sac_and_td3_swing_up_the_pendulum(algo, steps, threshold, tmp_path):
-    cfg = build_config({"algo": algo, "steps": steps, "seed": 0, "run_dir": str(tmp_path / algo),
+@pytest.mark.parametrize("algo", ["sac", "td3"])
+def test_sac_and_td3_swing_up_the_pendulum(algo, tmp_path):
+    cfg = build_config({"algo": algo, "steps": 12000, "seed": 0, "run_dir": str(tmp_path / algo),
                         "env": {"id": "Pendulum-v1", "num_envs": 1},
-                        algo: {"learning_starts": 1000, "hidden": [64, 64], "actor_lr": 1e-3, "critic_lr": 1e-3,
+                        algo: {"learning_starts": 1000, "hidden": [128, 128], "actor_lr": 5e-4, "critic_lr": 5e-4,
                                "eval_every": 0}})
     train(cfg, progress=False)
     result, _, _ = evaluate_checkpoint(tmp_path / algo, episodes=10)
-    assert result.summary()["return_mean"] >= threshold, result.summary()
+    assert result.summary()["return_mean"] >= -250, result.summary()
 
 
 @pytest.mark.slow

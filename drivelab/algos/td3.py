@@ -39,8 +39,10 @@ class Params(OffPolicyParams):
 
     def validate(self) -> None:
         super().validate()
-        if self.noise not in ("gaussian", "ou") or self.policy_delay < 1:
-            raise DrivelabError("config fields 'noise' must be gaussian or ou and 'policy_delay' >= 1")
+        if self.noise not in ("gaussian", "ou"):
+            raise DrivelabError(f"config field 'td3.noise' must be gaussian or ou, got {self.noise!r}")
+        if self.policy_delay < 1:
+            raise DrivelabError(f"config field 'td3.policy_delay' must be >= 1, got {self.policy_delay}")
 
 
 def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> OffPolicyAgent:
