@@ -1,6 +1,7 @@
 """DDPG / TD3 / SAC: numerics of the shared pieces, checkpoints with the buffer, learning."""
 
 import math
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -11,11 +12,13 @@ from safetensors.torch import load_file
 from drivelab.algos.sac import soft_td_target
 from drivelab.algos.td3 import td_target
 from drivelab.checkpoint import list_checkpoints
-from drivelab.config import build_config
+from drivelab.config import build_config, read_yaml
 from drivelab.errors import DrivelabError
 from drivelab.evaluate import evaluate_checkpoint
 from drivelab.offpolicy import EnsembleLinear, OffPolicyAgent, polyak_update, squashed_gaussian_log_prob
 from drivelab.run import train
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 
 def test_td_targets_bootstrap_through_truncation_but_not_termination():
@@ -97,17 +100,16 @@ def test_sac_learns_from_images_with_a_cnn(tmp_path):
     assert any(k.startswith("module/policy/encoder.convs") for k in tensors)
 
 
-# Evaluations of the deterministic policy on Pendulum dip now and then (a few of the 10 start
-# states are not swung up). With [64, 64] at lr 1e-3 both learn by ~8k steps but dip to
-# -370..-850 at points between 7k and 12k (seeds 0 and 1). With [128, 128] at 5e-4 both stayed at
-# -108..-122 from 10k steps on (TD3 to 20k) for seeds 0 and 1, so a 12k-step check has margin.
+# The shipped configs, at a shorter budget. Evaluations of the deterministic policy on Pendulum
+# dip now and then (a few of the 10 start states are not swung up): with [64, 64] at lr 1e-3 both
+# learn by ~8k steps but fell back to -318..-846 at points between 7k and 12k (seeds 0 and 1).
+# The configs' [128, 128] at 5e-4 stayed at -109..-122 from 10k steps on for seeds 0 and 1.
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", ["sac", "td3"])
 def test_sac_and_td3_swing_up_the_pendulum(algo, tmp_path):
-    cfg = build_config({"algo": algo, "steps": 12000, "seed": 0, "run_dir": str(tmp_path / algo),
-                        "env": {"id": "Pendulum-v1", "num_envs": 1},
-                        algo: {"learning_starts": 1000, "hidden": [128, 128], "actor_lr": 5e-4, "critic_lr": 5e-4,
-                               "eval_every": 0}})
+    shipped = read_yaml(CONFIGS / f"{algo}_pendulum.yaml")
+    cfg = build_config({**shipped, "steps": 12000, "seed": 0, "run_dir": str(tmp_path / algo),
+                        algo: {**shipped[algo], "eval_every": 0}})
     train(cfg, progress=False)
     result, _, _ = evaluate_checkpoint(tmp_path / algo, episodes=10)
     assert result.summary()["return_mean"] >= -250, result.summary()
@@ -115,10 +117,9 @@ def test_sac_and_td3_swing_up_the_pendulum(algo, tmp_path):
 
 @pytest.mark.slow
 def test_ddpg_improves_on_pendulum(tmp_path):
-    cfg = build_config({"algo": "ddpg", "steps": 8000, "seed": 0, "run_dir": str(tmp_path / "ddpg"),
-                        "env": {"id": "Pendulum-v1", "num_envs": 1},
-                        "ddpg": {"learning_starts": 1000, "hidden": [64, 64], "actor_lr": 1e-3, "critic_lr": 1e-3,
-                                 "noise": "gaussian", "noise_std": 0.1, "noise_std_final": 0.1, "eval_every": 0}})
+    shipped = read_yaml(CONFIGS / "ddpg_pendulum.yaml")
+    cfg = build_config({**shipped, "steps": 8000, "seed": 0, "run_dir": str(tmp_path / "ddpg"),
+                        "ddpg": {**shipped["ddpg"], "eval_every": 0}})
     train(cfg, progress=False)
     before, _, _ = evaluate_checkpoint(list_checkpoints(tmp_path / "ddpg")[0], episodes=10)
     after, _, _ = evaluate_checkpoint(tmp_path / "ddpg", episodes=10)

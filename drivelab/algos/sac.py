@@ -35,7 +35,8 @@ class Params(OffPolicyParams):
     # Start well below 1 when rewards per step are small (MetaDrive: ~0.1-1): with alpha = 1 the
     # entropy bonus outweighs the reward, the policy stays near uniform while log(alpha) falls by
     # ~alpha_lr per update, and by the time the policy reacts to rewards alpha is ~0.001 and too
-    # slow to come back; exploration is gone (MetaDrive, 20 minutes: route completion 5.8%, vs 28.2% with 0.05).
+    # slow to come back; exploration is gone (MetaDrive, 20 minutes: route completion 5.8%,
+    # vs 28.2% with 0.05).
     init_alpha: float = 1.0
     autotune: bool = True
     target_entropy: float | None = None   # None: -|A|
