@@ -1,8 +1,9 @@
 """Training benchmarks, written as JSON. Not part of the test suite. `learn` works for every
 algorithm's config; `speed` is for the on-policy family (A2C, PPO, GRPO).
 
-Speed: raw vectorised env steps/s with random actions, training steps/s, and the trainer's
-overhead (the share of wall time spent neither stepping envs nor in gradient updates):
+Speed: raw vectorised env steps/s with random actions, training steps/s, and where the
+trainer's wall time goes (perf/env_fraction, perf/update_fraction, perf/other_fraction: policy
+inference during collection, storage, bookkeeping):
 
     python benchmarks/training.py speed --algo ppo --config configs/ppo_metadrive.yaml --steps 8192
 
@@ -26,10 +27,10 @@ from pathlib import Path
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
-from drivelab.config import build_config, read_yaml, set_dotted
+from drivelab.api import build_config, evaluate_checkpoint, train
+from drivelab.checkpoint import checkpoint_step
+from drivelab.config import read_yaml, set_dotted
 from drivelab.envs import make_vector_env
-from drivelab.evaluate import evaluate_checkpoint
-from drivelab.run import train
 
 
 def load(args) -> object:
@@ -72,13 +73,13 @@ def speed(args) -> dict:
         started = time.perf_counter()
         train(cfg, progress=False)
         wall = time.perf_counter() - started
-        perf = metric_means(Path(cfg.run_dir), ("perf/overhead", "perf/env_s", "perf/update_s", "perf/iteration_s"))
+        perf = metric_means(Path(cfg.run_dir), ("perf/other_fraction", "perf/env_fraction", "perf/update_fraction"))
         with open(Path(cfg.run_dir) / "metrics.csv") as f:
             final_step = max(int(r["step"]) for r in csv.DictReader(f))
     return {"benchmark": "onpolicy-speed", "algo": cfg.algo, "env": cfg.env.id, "num_envs": cfg.env.num_envs,
             "random_env_steps_per_s": raw, "train_steps_per_s": final_step / wall, "train_wall_s": wall,
-            "overhead_share": perf["perf/overhead"], "env_share": perf["perf/env_s"] / perf["perf/iteration_s"],
-            "update_share": perf["perf/update_s"] / perf["perf/iteration_s"]}
+            "other_fraction": perf["perf/other_fraction"], "env_fraction": perf["perf/env_fraction"],
+            "update_fraction": perf["perf/update_fraction"]}
 
 
 def learn(args) -> dict:
@@ -97,8 +98,7 @@ def learn(args) -> dict:
     result, env_cfg, ckpt = evaluate_checkpoint(run_dir, episodes=args.episodes, env_id=args.eval_env,
                                                 env_kwargs={k: json.loads(v) for k, v in kwargs.items()})
     return {"benchmark": "learn", "algo": cfg.algo, "env": cfg.env.id, "eval_env": env_cfg.id,
-            "steps": int(ckpt.name.split("_")[-1]), "train_wall_s": wall,
-            "train_steps_per_s": int(ckpt.name.split("_")[-1]) / wall, "run_dir": str(run_dir), **result.summary()}
+            "steps": checkpoint_step(ckpt), "train_wall_s": wall, "train_steps_per_s": checkpoint_step(ckpt) / wall, "run_dir": str(run_dir), **result.summary()}
 
 
 def main() -> None:

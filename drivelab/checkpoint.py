@@ -73,9 +73,10 @@ def optimizer_from_flat(name: str, optimizer: torch.optim.Optimizer, tensors: di
 def save_checkpoint(run_dir: str | Path, step: int, *, modules: dict[str, nn.Module],
                     optimizers: dict[str, torch.optim.Optimizer] | None = None,
                     tensors: dict[str, torch.Tensor] | None = None, state: dict[str, Any] | None = None,
-                    keep: int = 3) -> Path:
+                    keep: int = 3, dirname: str | None = None) -> Path:
     """Write a checkpoint atomically and prune old ones (the step-0 checkpoint is always kept,
-    for before/after comparisons). Returns its directory."""
+    for before/after comparisons). Returns its directory, ``step_<N>``, or ``dirname`` when given
+    (e.g. ``best``: replaced in place, never pruned, never taken as the latest)."""
     root = Path(run_dir) / "checkpoints"
     root.mkdir(parents=True, exist_ok=True)
     flat: dict[str, torch.Tensor] = {}
@@ -91,8 +92,8 @@ def save_checkpoint(run_dir: str | Path, step: int, *, modules: dict[str, nn.Mod
     flat["rng/torch"] = torch.get_rng_state()
     full_state = {"step": int(step), "optimizers": optim_meta, **(state or {})}
 
-    final = root / f"step_{step:012d}"
-    tmp = root / f".tmp_step_{step:012d}_{os.getpid()}"
+    final = root / (dirname or f"step_{step:012d}")
+    tmp = root / f".tmp_{final.name}_{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     save_file(flat, str(tmp / "tensors.safetensors"))
@@ -103,6 +104,8 @@ def save_checkpoint(run_dir: str | Path, step: int, *, modules: dict[str, nn.Mod
     if final.exists():
         shutil.rmtree(final)
     os.replace(tmp, final)
+    if dirname is not None:
+        return final
 
     kept = [p for p in list_checkpoints(run_dir) if not p.name.endswith("000000000000")]
     for old in kept[:-keep]:
@@ -128,6 +131,11 @@ def resolve_checkpoint(path: str | Path) -> Path:
     if not found:
         raise DrivelabError(f"no checkpoint found in {path}")
     return found[-1]
+
+
+def checkpoint_step(path: str | Path) -> int:
+    """The env step a checkpoint directory (``step_<N>`` or ``best``) was written at."""
+    return int(json.loads((Path(path) / "state.json").read_text())["step"])
 
 
 def load_checkpoint(path: str | Path) -> Checkpoint:

@@ -20,11 +20,14 @@ from typing import Any
 
 import yaml
 
-from drivelab.algos import ALGOS
+from drivelab import api
+from drivelab.algos import ALGORITHMS
+from drivelab.checkpoint import checkpoint_step
 from drivelab.errors import DrivelabError
 
 # Fields that may change when a run is resumed; anything else would change the experiment.
-RESUMABLE_FIELDS = ("steps", "torch_threads", "checkpoint_every", "keep_checkpoints", "stats_window", "device", "track")
+RESUMABLE_FIELDS = ("steps", "max_minutes", "torch_threads", "checkpoint_every", "keep_checkpoints", "stats_window",
+                    "log_every", "eval", "device", "track")
 
 
 def parse_value(text: str) -> Any:
@@ -64,7 +67,7 @@ def _train_parser(sub) -> None:
     p = sub.add_parser("train", help="train an agent", description="Train an agent. Any config field can be set with --section.field VALUE.")
     p.add_argument("--config", help="YAML config file")
     p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest checkpoint")
-    p.add_argument("--algo", help=f"algorithm: {', '.join(ALGOS)}")
+    p.add_argument("--algo", help=f"algorithm: {', '.join(ALGORITHMS)}")
     p.add_argument("--env", help="Gymnasium env id, e.g. CartPole-v1 or MetaDrive-10env-v0")
     p.add_argument("--steps", type=int, help="total env steps to train for")
     p.add_argument("--seed", type=int)
@@ -146,12 +149,9 @@ def _train_data(args: argparse.Namespace, extra: dict[str, Any]) -> tuple[dict, 
 
 
 def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
-    from drivelab.config import build_config
-    from drivelab.run import train
-
     data, resume = _train_data(args, extra)
-    cfg = build_config(data)
-    run_dir = train(cfg, resume=resume, progress=not args.no_progress)
+    cfg = api.build_config(data)
+    run_dir = api.train(cfg, resume=resume, progress=not args.no_progress)
     print(f"run saved in {run_dir} (config.yaml, metrics.csv, tb/, checkpoints/)")
     print(f"  evaluate: drivelab eval {run_dir} --episodes 10    watch: tensorboard --logdir {run_dir}/tb")
     return 0
@@ -171,13 +171,11 @@ def format_eval(summary: dict, env_id: str, checkpoint: Path) -> str:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from drivelab.evaluate import evaluate_checkpoint
-
-    result, env_cfg, ckpt = evaluate_checkpoint(args.path, args.episodes, args.env, _env_kwargs(args.env_kwarg), args.num_envs,
+    result, env_cfg, ckpt = api.evaluate_checkpoint(args.path, args.episodes, args.env, _env_kwargs(args.env_kwarg), args.num_envs,
                                                 args.seed, deterministic=not args.stochastic)
     summary = result.summary()
     if args.json:
-        print(json.dumps({**summary, "env": env_cfg.id, "checkpoint": str(ckpt), "step": int(ckpt.name.split("_")[-1])}))
+        print(json.dumps({**summary, "env": env_cfg.id, "checkpoint": str(ckpt), "step": checkpoint_step(ckpt)}))
     else:
         print(format_eval(summary, env_cfg.id, ckpt))
     return 0

@@ -9,12 +9,18 @@ A config file looks like the one saved in every run directory (``config.yaml``):
     reinforce: {lr: 0.003, gamma: 0.99}      # the section named after `algo`
 
 Unknown or ill-typed fields are reported as one-line :class:`DrivelabError` naming the field.
+
+This module knows nothing of the algorithms: :func:`parse_config` is handed the registry
+(name -> hyperparameter dataclass) by its caller (:mod:`drivelab.api`), so no module below the
+algorithms imports them.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 from dataclasses import dataclass, field
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +49,38 @@ class EnvConfig:
     # keyword overrides for gym.make, e.g. MetaDrive's {num_scenarios: 10, traffic_density: 0.2}
     kwargs: dict[str, Any] = field(default_factory=dict)
 
+    def validate(self, where: str = "env") -> None:
+        """Check every field once, before anything is built (the env factory trusts the result)."""
+        from drivelab.envs.rewards import validate_reward_config
+        from drivelab.envs.wrappers import parse_grid
+
+        if self.num_envs < 1:
+            raise DrivelabError(f"config field '{where}.num_envs' must be >= 1, got {self.num_envs}")
+        if self.vectorization not in ("auto", "sync", "async"):
+            raise DrivelabError(f"config field '{where}.vectorization' must be auto, sync or async, got {self.vectorization!r}")
+        if self.action_grid is not None:
+            parse_grid(self.action_grid, f"{where}.action_grid")
+            if self.fixed_throttle is not None:
+                raise DrivelabError(f"config fields '{where}.action_grid' and '{where}.fixed_throttle' exclude each other")
+        if self.reward is not None:
+            validate_reward_config(self.reward, f"{where}.reward")
+
+
+@dataclass
+class EvalConfig:
+    """Periodic deterministic evaluation during training, in its own env (subprocess for MetaDrive)."""
+    every: int = 0                 # env steps between evaluations (0: never)
+    episodes: int = 10
+    # Another env id for held-out evaluation (e.g. MetaDrive-validation-v0); None: the training
+    # env. With another id the training env's kwargs are dropped (they may redefine the
+    # scenarios) and `kwargs` is used instead; wrappers (action grid, filters, reward) are kept.
+    env_id: str | None = None
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    seed: int = 10_000             # episode k is reset with seed + k
+    num_envs: int = 1
+    # The checkpoint with the best value of this eval/* metric is kept as checkpoints/best.
+    best_metric: str = "return_mean"
+
 
 @dataclass
 class TrackConfig:
@@ -68,6 +106,9 @@ class TrainConfig:
     keep_checkpoints: int = 3
     # Episodes in the recent-return window (progress bar and logged means).
     stats_window: int = 20
+    # Env steps between metric logs (the last iteration's or the means since the last log).
+    log_every: int = 1000
+    eval: EvalConfig = field(default_factory=EvalConfig)
     track: TrackConfig = field(default_factory=TrackConfig)
     # Hyperparameters of `algo`: an instance of that algorithm's dataclass (its section in YAML).
     algo_params: Any = None
@@ -130,26 +171,27 @@ def read_yaml(path: str | Path) -> dict:
     return data
 
 
-def build_config(data: dict, where: str = "config") -> TrainConfig:
+def parse_config(data: dict, algo_params: Mapping[str, type], where: str = "config") -> TrainConfig:
     """Validate a nested dict (YAML file + overrides) into a TrainConfig.
 
-    The algorithm's hyperparameters come from the section named after ``algo``.
+    ``algo_params`` maps each algorithm's name to its hyperparameter dataclass (the registry's
+    view, passed down by the caller); the hyperparameters come from the section named after
+    ``algo``.
     """
-    from drivelab.algos import get_algo
-
     data = dict(data)
     algo = data.get("algo", TrainConfig.algo)
-    spec = get_algo(algo)
+    if algo not in algo_params:
+        close = difflib.get_close_matches(str(algo), list(algo_params), n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise DrivelabError(f"unknown algorithm '{algo}'{hint}; available: {', '.join(algo_params)}")
     params = data.pop(algo, None) or {}
-    from drivelab.algos import ALGOS
-
-    stray = [name for name in ALGOS if name in data]
+    stray = [name for name in algo_params if name in data]
     if stray:
         raise DrivelabError(f"{where}: section '{stray[0]}' does not apply to algo '{algo}'")
     if "algo_params" in data:
         raise DrivelabError(f"{where}: unknown field(s) algo_params (use a section named '{algo}')")
     cfg = _from_dict(TrainConfig, data, where)
-    cfg.algo_params = _from_dict(spec.params, params, f"{where} section '{algo}'")
+    cfg.algo_params = _from_dict(algo_params[algo], params, f"{where} section '{algo}'")
     _validate(cfg)
     return cfg
 
@@ -158,27 +200,20 @@ def _validate(cfg: TrainConfig) -> None:
     checks = [
         ("steps", cfg.steps >= 0, "must be >= 0"),
         ("max_minutes", cfg.max_minutes is None or cfg.max_minutes > 0, "must be > 0"),
-        ("env.num_envs", cfg.env.num_envs >= 1, "must be >= 1"),
         ("torch_threads", cfg.torch_threads >= 1, "must be >= 1"),
         ("checkpoint_every", cfg.checkpoint_every >= 1, "must be >= 1"),
         ("keep_checkpoints", cfg.keep_checkpoints >= 1, "must be >= 1"),
         ("stats_window", cfg.stats_window >= 1, "must be >= 1"),
-        ("env.vectorization", cfg.env.vectorization in ("auto", "sync", "async"), "must be auto, sync or async"),
+        ("log_every", cfg.log_every >= 1, "must be >= 1"),
+        ("eval.every", cfg.eval.every >= 0, "must be >= 0"),
+        ("eval.episodes", cfg.eval.episodes >= 1, "must be >= 1"),
+        ("eval.num_envs", cfg.eval.num_envs >= 1, "must be >= 1"),
         ("device", cfg.device == "cpu" or cfg.device.startswith("cuda"), "must be cpu or cuda[:N]"),
     ]
     for name, ok, message in checks:
         if not ok:
             raise DrivelabError(f"config field '{name}' {message}")
-    if cfg.env.action_grid is not None:
-        from drivelab.envs.wrappers import parse_grid
-
-        parse_grid(cfg.env.action_grid)
-        if cfg.env.fixed_throttle is not None:
-            raise DrivelabError("config fields 'env.action_grid' and 'env.fixed_throttle' exclude each other")
-    if cfg.env.reward is not None:
-        from drivelab.envs.rewards import validate_reward_config
-
-        validate_reward_config(cfg.env.reward)
+    cfg.env.validate()
     if hasattr(cfg.algo_params, "validate"):
         cfg.algo_params.validate()
 
@@ -193,10 +228,3 @@ def config_to_dict(cfg: TrainConfig) -> dict:
 
 def save_config(cfg: TrainConfig, path: str | Path) -> None:
     Path(path).write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-
-
-def load_run_config(run_dir: str | Path) -> TrainConfig:
-    path = Path(run_dir) / "config.yaml"
-    if not path.is_file():
-        raise DrivelabError(f"not a drivelab run directory (no config.yaml): {run_dir}")
-    return build_config(read_yaml(path), where=str(path))

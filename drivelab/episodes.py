@@ -1,14 +1,19 @@
-"""Per-episode bookkeeping shared by training and evaluation.
+"""Episode bookkeeping, one tracker for every algorithm and for evaluation.
 
 Driving envs report, in ``info`` at every step, whether the episode has so far ended in success,
 crashed or left the road, and how much of the route is done (see
 :mod:`drivelab.envs.metadrive`). Any env that reports these keys gets driving metrics; others
 get return and length only. No trainer needs to know which env it runs.
+
+The tracker reads a vector env's batched ``info`` in both autoreset modes that drivelab uses:
+with ``SAME_STEP`` the ended episode's info is under ``info["final_info"]`` (the top level
+already belongs to the next episode); with ``DISABLED`` it is the top level itself.
 """
 
 from __future__ import annotations
 
 from collections import deque
+from typing import NamedTuple
 
 import numpy as np
 
@@ -33,22 +38,69 @@ def episode_info(info: dict, index: int) -> dict[str, float]:
     return out
 
 
-class EpisodeStats:
-    """The last ``window`` finished episodes: return, length and driving metrics."""
+class Episode(NamedTuple):
+    env: int                      # index of the sub-env that played it
+    ret: float                    # undiscounted return
+    length: int
+    metrics: dict[str, float]     # driving metrics and reward-term sums, where the env reports them
 
-    def __init__(self, window: int = 20):
+
+class EpisodeTracker:
+    """Running return and length of each of ``num_envs`` envs, and the last ``window`` finished
+    episodes (their means are what training logs as ``episode/*``)."""
+
+    def __init__(self, num_envs: int, window: int = 20):
+        self.running_return = np.zeros(num_envs)
+        self.running_length = np.zeros(num_envs, np.int64)
         self.returns: deque[float] = deque(maxlen=window)
         self.lengths: deque[int] = deque(maxlen=window)
         self.extra: dict[str, deque[float]] = {}
         self.window = window
         self.total_episodes = 0
 
-    def add(self, episode_return: float, length: int, metrics: dict[str, float]) -> None:
-        self.returns.append(float(episode_return))
-        self.lengths.append(int(length))
-        for name, value in metrics.items():
+    def step(self, rewards: np.ndarray, done: np.ndarray, info: dict,
+             counted: np.ndarray | None = None) -> list[Episode]:
+        """Add one vector step (rewards, done = terminated | truncated, both (N,)). Returns the
+        episodes that ended at this step; those where ``counted`` (default: all) also enter the
+        window (REINFORCE and GRPO do not count the episodes of envs that idle, masked)."""
+        self.running_return += rewards
+        self.running_length += 1
+        if not done.any():
+            return []
+        source = info.get("final_info", info)
+        ended = []
+        for i in np.flatnonzero(done):
+            episode = Episode(int(i), float(self.running_return[i]), int(self.running_length[i]), episode_info(source, i))
+            ended.append(episode)
+            if counted is None or counted[i]:
+                self._add(episode)
+        self.restart(done)
+        return ended
+
+    def restart(self, mask: np.ndarray) -> None:
+        """Zero the running sums of the envs in ``mask`` (reset by the trainer mid-episode)."""
+        self.running_return[mask] = 0.0
+        self.running_length[mask] = 0
+
+    def _add(self, episode: Episode) -> None:
+        self.returns.append(episode.ret)
+        self.lengths.append(episode.length)
+        for name, value in episode.metrics.items():
             self.extra.setdefault(name, deque(maxlen=self.window)).append(value)
         self.total_episodes += 1
+
+    def state(self) -> dict:
+        """The window of finished episodes, JSON-able (checkpointed, so a resumed run logs the
+        same means as an uninterrupted one)."""
+        return {"returns": list(self.returns), "lengths": list(self.lengths),
+                "extra": {name: list(values) for name, values in self.extra.items()}, "total": self.total_episodes}
+
+    def load_state(self, state: dict) -> None:
+        self.returns.extend(state["returns"])
+        self.lengths.extend(state["lengths"])
+        for name, values in state["extra"].items():
+            self.extra.setdefault(name, deque(maxlen=self.window)).extend(values)
+        self.total_episodes = int(state["total"])
 
     def means(self, prefix: str = "episode/") -> dict[str, float]:
         if not self.returns:

@@ -1,16 +1,21 @@
-"""Networks shared by every algorithm: observation encoders and policy heads.
+"""Networks shared by every algorithm: observation encoders, policy heads, critics.
 
 * :func:`make_encoder` picks an MLP for vector observations and a CNN for images
   (uint8 HxWxC or CxHxW, scaled to [0, 1] inside the network).
 * :class:`Policy` turns encoder features into a ``torch.distributions`` object:
   ``Categorical`` for ``Discrete`` actions and a diagonal Gaussian (state-independent
-  log-std, as in PPO/REINFORCE baselines) for ``Box`` actions.
+  log-std, as in PPO/REINFORCE baselines) for ``Box`` actions; :class:`ActorCritic` adds V(s).
+* :class:`OffPolicyAgent` (DDPG, TD3, SAC): a deterministic or squashed-Gaussian actor and E
+  Q-critics evaluated in one batched pass; :func:`make_target` and :func:`polyak_update` for
+  the target networks.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import gymnasium as gym
 import numpy as np
@@ -19,12 +24,22 @@ from torch import nn
 from torch.distributions import Categorical, Distribution, Independent, Normal
 
 from drivelab.errors import DrivelabError
+from drivelab.normalize import RunningMeanStd
 
 # Distribution argument checks cost tens of microseconds per call, i.e. a noticeable share of an
 # env step in a rollout loop; drivelab's networks produce valid parameters by construction.
 torch.distributions.Distribution.set_default_validate_args(False)
 
 ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU, "silu": nn.SiLU}
+
+
+@dataclass
+class PolicyNetParams:
+    """Network hyperparameters of the policy-gradient family (REINFORCE, A2C, PPO, GRPO); each
+    algorithm's ``Params`` extends it."""
+    hidden: list[int] = field(default_factory=lambda: [64, 64])
+    activation: str = "tanh"
+    log_std_init: float = 0.0     # initial log std of the Gaussian policy (continuous actions)
 
 
 def layer_init(layer: nn.Module, gain: float = math.sqrt(2), bias: float = 0.0) -> nn.Module:
@@ -164,8 +179,6 @@ class ActorCritic(nn.Module):
     def __init__(self, obs_space: gym.Space, act_space: gym.Space, hidden: Sequence[int] = (64, 64),
                  act: str = "tanh", log_std_init: float = 0.0, obs_norm: bool = False, critic: bool = True):
         super().__init__()
-        from drivelab.normalize import RunningMeanStd
-
         self.obs_rms = RunningMeanStd(obs_space.shape) if obs_norm and not is_image_space(obs_space) else None
         self.actor = Policy(obs_space, act_space, hidden, act, log_std_init)
         self.discrete = self.actor.discrete
@@ -190,3 +203,158 @@ class ActorCritic(nn.Module):
 
     def to_env(self, action: torch.Tensor) -> np.ndarray:
         return self.actor.to_env(action)
+
+
+# ---------------------------------------------------------------------------------------------
+# Off-policy networks (DDPG, TD3, SAC): actions in the policy's [-1, 1] units (actors end in
+# tanh); ``OffPolicyAgent.to_env`` maps them affinely onto the env's Box bounds, so replay,
+# critics and noise never see env units. Image observations go through one CNN encoder that
+# belongs to the critic and is trained by the critic loss only; the actor reads its features
+# detached (as in SAC-AE, Yarats et al. 2021), so the actor's gradient cannot degrade the
+# representation the critic relies on.
+
+
+class EnsembleLinear(nn.Module):
+    """E independent linear layers applied in one batched matmul: (E, B, in) -> (E, B, out).
+
+    Twin (or single) critics are one module, so both Q-values come from one pass instead of
+    one pass per critic."""
+
+    def __init__(self, ensemble: int, in_dim: int, out_dim: int):
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(ensemble, in_dim, out_dim))
+        self.bias = nn.Parameter(torch.empty(ensemble, 1, out_dim))
+        bound = 1 / math.sqrt(in_dim)  # nn.Linear's default initialisation, per member
+        nn.init.uniform_(self.weight, -bound, bound)
+        nn.init.uniform_(self.bias, -bound, bound)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.baddbmm(self.bias, x, self.weight)
+
+
+class Critics(nn.Module):
+    """E Q-networks Q_e(s, a) over features of s: forward returns (E, B)."""
+
+    def __init__(self, feature_dim: int, act_dim: int, hidden: Sequence[int], act: str, ensemble: int = 2):
+        super().__init__()
+        layers: list[nn.Module] = []
+        width = feature_dim + act_dim
+        for h in hidden:
+            layers += [EnsembleLinear(ensemble, width, h), activation(act)()]
+            width = h
+        layers.append(EnsembleLinear(ensemble, width, 1))
+        self.net = nn.Sequential(*layers)
+        self.ensemble = ensemble
+
+    def forward(self, features: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([features, actions], dim=-1)
+        return self.net(x.unsqueeze(0).expand(self.ensemble, -1, -1)).squeeze(-1)
+
+
+class DeterministicActor(nn.Module):
+    """mu(s) in [-1, 1]^A (DDPG, TD3)."""
+
+    def __init__(self, feature_dim: int, act_dim: int, hidden: Sequence[int], act: str):
+        super().__init__()
+        self.net = nn.Sequential(mlp(feature_dim, hidden, act), nn.Linear(hidden[-1], act_dim), nn.Tanh())
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return self.net(features)
+
+
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+
+
+class SquashedGaussianActor(nn.Module):
+    """a = tanh(u), u ~ N(mu(s), sigma(s)^2) (SAC)."""
+
+    def __init__(self, feature_dim: int, act_dim: int, hidden: Sequence[int], act: str):
+        super().__init__()
+        self.trunk = mlp(feature_dim, hidden, act)
+        self.mean = nn.Linear(hidden[-1], act_dim)
+        self.log_std = nn.Linear(hidden[-1], act_dim)
+
+    def forward(self, features: torch.Tensor, deterministic: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """Returns (action (B, A) in [-1, 1], log pi(action|s) (B,))."""
+        h = self.trunk(features)
+        mean = self.mean(h)
+        # Soft clamp of log sigma into [LOG_STD_MIN, LOG_STD_MAX] (keeps gradients everywhere).
+        log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(self.log_std(h)) + 1)
+        u = mean if deterministic else mean + log_std.exp() * torch.randn_like(mean)  # reparameterised
+        return torch.tanh(u), squashed_gaussian_log_prob(u, mean, log_std)
+
+
+def squashed_gaussian_log_prob(u: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+    """log pi(tanh(u)) for u ~ N(mean, exp(log_std)^2), summed over action dims: shapes (B, A) -> (B,).
+
+    Change of variables a = tanh(u) (Haarnoja et al. 2018, appendix C, eq. 21):
+        log pi(a|s) = log N(u; mean, sigma) - sum_i log(1 - tanh(u_i)^2),
+    with log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u)), which stays finite where tanh saturates.
+    """
+    normal = -0.5 * ((u - mean) / log_std.exp()).pow(2) - log_std - 0.5 * math.log(2 * math.pi)
+    log_det = 2 * (math.log(2) - u - nn.functional.softplus(-2 * u))
+    return (normal - log_det).sum(-1)
+
+
+class OffPolicyAgent(nn.Module):
+    """Encoder + actor + E critics. ``act``/``to_env`` make it a policy for ``drivelab eval``.
+
+    Vector observations are flattened (each MLP learns its own features); uint8 images share
+    one CNN, trained by the critics (see the module docstring).
+    """
+
+    def __init__(self, obs_space: gym.Space, act_space: gym.Space, hidden: Sequence[int], act: str,
+                 stochastic: bool, critics: int = 2):
+        super().__init__()
+        if not (isinstance(act_space, gym.spaces.Box) and len(act_space.shape) == 1):
+            raise DrivelabError(f"DDPG, TD3 and SAC need a continuous 1-D Box action space, not {act_space} "
+                                "(for discrete actions use ppo, a2c or grpo; drop env.action_grid)")
+        if is_image_space(obs_space):
+            self.encoder: nn.Module = CNNEncoder(obs_space)
+            feature_dim = self.encoder.out_dim
+        else:
+            self.encoder = nn.Flatten()
+            feature_dim = int(np.prod(obs_space.shape))
+        act_dim = act_space.shape[0]
+        actor_cls = SquashedGaussianActor if stochastic else DeterministicActor
+        self.actor = actor_cls(feature_dim, act_dim, hidden, act)
+        self.critic = Critics(feature_dim, act_dim, hidden, act, ensemble=critics)
+        self.stochastic = stochastic
+        # [-1, 1] -> [low, high]
+        low, high = (torch.as_tensor(b, dtype=torch.float32) for b in (act_space.low, act_space.high))
+        self.register_buffer("action_scale", (high - low) / 2)
+        self.register_buffer("action_bias", (high + low) / 2)
+
+    def compile_networks(self) -> None:
+        """torch.compile the forward passes (state_dict keys stay the same, so checkpoints too)."""
+        for module in (self.encoder, self.actor, self.critic):
+            module.forward = torch.compile(module.forward)
+
+    def features(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.encoder(obs if obs.dtype == torch.uint8 else obs.float())
+
+    def policy(self, features: torch.Tensor, deterministic: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(action in [-1, 1] (B, A), log-prob (B,) or None for deterministic actors)."""
+        if self.stochastic:
+            return self.actor(features, deterministic)
+        return self.actor(features), None
+
+    @torch.no_grad()
+    def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
+        return self.policy(self.features(obs), deterministic)[0]
+
+    def to_env(self, action: torch.Tensor) -> np.ndarray:
+        return (action * self.action_scale + self.action_bias).cpu().numpy()
+
+
+def polyak_update(target: nn.Module, source: nn.Module, tau: float) -> None:
+    """target <- (1 - tau) * target + tau * source, for every parameter, in one fused op."""
+    with torch.no_grad():
+        torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
+
+
+def make_target(module: nn.Module) -> nn.Module:
+    """A frozen copy that only Polyak averaging changes."""
+    target = copy.deepcopy(module)
+    target.requires_grad_(False)
+    return target

@@ -5,6 +5,7 @@ the same episodes).
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any, Callable
 
@@ -79,11 +80,12 @@ def record_episodes(env_id: str, policy: str, episodes: int, seed: int = 0, env_
     import gymnasium as gym
     import torch
 
+    from drivelab.config import EnvConfig
     from drivelab.envs import make_env
 
     act: Callable[[Any, dict], Any]
     if policy in ("random", "lane-keeping"):
-        env = make_env(env_id, env_kwargs)
+        env = make_env(EnvConfig(id=env_id, kwargs=dict(env_kwargs or {})))
         space = env.action_space
         if policy == "random":
             space.seed(seed)
@@ -94,18 +96,17 @@ def record_episodes(env_id: str, policy: str, episodes: int, seed: int = 0, env_
                 raise DrivelabError(f"the lane-keeping controller needs [steering] or [steering, throttle] actions; {env_id} has {space}")
             act = lambda obs, info: np.array(lane_keeping_controller(info)[: space.shape[0]], np.float32)  # noqa: E731
     else:
-        from drivelab.algos import get_algo
-        from drivelab.checkpoint import load_checkpoint, restore
-        from drivelab.config import build_config
+        from drivelab.api import checkpoint_config, policy_from_checkpoint
+        from drivelab.checkpoint import load_checkpoint
 
         ckpt = load_checkpoint(policy)
-        cfg = build_config(ckpt.state["config"])
+        cfg = checkpoint_config(ckpt)
         if env_id == cfg.env.id:  # the training env's kwargs may shape the action space (target_speed)
             env_kwargs = {**cfg.env.kwargs, **(env_kwargs or {})}
-        env = make_env(env_id, env_kwargs, cfg.env.action_grid, cfg.env.max_steering, None, cfg.env.fixed_throttle,
-                       None, cfg.env.obs_filters)
-        net = get_algo(cfg.algo).build_policy(cfg, env.observation_space, env.action_space)
-        restore(ckpt, {"policy": net}, rng=False)
+        # The checkpoint's action and observation adapters; its reward shaping is what is compared.
+        env_cfg = dataclasses.replace(cfg.env, id=env_id, kwargs=dict(env_kwargs or {}), reward=None)
+        env = make_env(env_cfg)
+        net = policy_from_checkpoint(ckpt, cfg, env_cfg)
         act = lambda obs, info: net.to_env(net.act(torch.as_tensor(obs)[None], deterministic=True))[0]  # noqa: E731
     trajectories = []
     try:

@@ -1,4 +1,5 @@
-"""Fixed-length rollouts for actor-critic methods (A2C, PPO): T steps in each of N envs.
+"""Rollout parts of the on-policy family: fixed-length rollouts for actor-critic methods (A2C,
+PPO), T steps in each of N envs, and growing storage for whole episodes (REINFORCE, GRPO).
 
 The envs run with Gymnasium's ``AutoresetMode.SAME_STEP``: when an episode ends at step t, the
 returned observation is already the first one of the next episode, and the true last
@@ -13,20 +14,43 @@ action is ignored) and makes the two kinds of episode end explicit:
 
 from __future__ import annotations
 
-import time
-from typing import Callable, NamedTuple
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import gymnasium as gym
 import numpy as np
 import torch
-from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector import AutoresetMode
 
+from drivelab.config import EnvConfig
 from drivelab.envs import make_vector_env
-from drivelab.episodes import episode_info
-from drivelab.nets import ActorCritic
+from drivelab.errors import DrivelabError
+from drivelab.nets import ActorCritic, PolicyNetParams
 from drivelab.normalize import RunningMeanStd
 from drivelab.returns import gae
-from drivelab.run import iteration_timing
+from drivelab.run import Run
+
+
+@dataclass
+class ActorCriticParams(PolicyNetParams):
+    """Hyperparameters that A2C and PPO share (each file sets its own defaults where they differ)."""
+    lr: float = 3e-4
+    anneal_lr: bool = True        # linear decay to 0 over the run
+    num_steps: int = 128          # rollout length T per env
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    norm_adv: bool = True         # standardise advantages (per minibatch)
+    ent_coef: float = 0.0
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    normalize_obs: bool = False   # running observation normalisation (saved with the weights)
+    normalize_reward: bool = False  # divide rewards by the running std of the discounted return
+
+    def validate(self) -> None:
+        if self.num_steps < 1:
+            raise DrivelabError(f"config field 'num_steps' must be >= 1, got {self.num_steps}")
+        if not 0 <= self.gae_lambda <= 1 or not 0 <= self.gamma <= 1:
+            raise DrivelabError("config fields 'gamma' and 'gae_lambda' must be in [0, 1]")
 
 
 class RolloutBatch(NamedTuple):
@@ -70,30 +94,37 @@ class RolloutBuffer:
 
 
 class RolloutCollector:
-    """Steps N envs for T steps at a time, keeping their episodes running across rollouts.
+    """N envs (``AutoresetMode.SAME_STEP``) stepped T steps at a time into a preallocated
+    :class:`RolloutBuffer`, their episodes running on across rollouts.
 
-    Tracks the time spent stepping envs (``env_seconds``) so trainers can report their own
-    overhead; episode returns/lengths/driving metrics go to ``run.stats``.
+    Episode returns, lengths and driving metrics go to ``run.episodes``; env time to
+    ``run.timing.env``. With ``scale_rewards`` the rewards are divided by the running std of the
+    discounted return (Engstrom et al. 2020), so the critic's targets keep a stable scale; its
+    statistics are a module (``reward_rms``) to checkpoint with the agent.
     """
 
-    def __init__(self, envs: VectorEnv, run, gamma: float, scale_rewards: bool):
-        self.envs, self.run, self.gamma = envs, run, gamma
-        n = envs.num_envs
-        self.obs, _ = envs.reset(seed=run.reset_seeds(np.ones(n, bool)))
-        self.episode_return = np.zeros(n)
-        self.episode_length = np.zeros(n, np.int64)
-        # Reward scaling (Engstrom et al. 2020): divide rewards by the running std of the
-        # discounted return, so the critic's targets keep a stable scale.
+    def __init__(self, env_cfg: EnvConfig, run: Run, *, num_steps: int, gamma: float, gae_lambda: float,
+                 scale_rewards: bool):
+        self.envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.SAME_STEP)
+        self.run, self.gamma, self.gae_lambda = run, gamma, gae_lambda
+        n = self.envs.num_envs
+        self.obs_space, self.act_space = self.envs.single_observation_space, self.envs.single_action_space
+        self.buffer = RolloutBuffer(num_steps, n, self.obs_space, self.act_space, run.device)
+        self.steps_per_rollout = num_steps * n
+        self.obs, _ = self.envs.reset(seed=run.reset_seeds(np.ones(n, bool)))
         self.reward_rms = RunningMeanStd(()) if scale_rewards else None
         self.discounted_return = np.zeros(n)
-        self.env_seconds = 0.0
+
+    def modules(self) -> dict[str, torch.nn.Module]:
+        """What a checkpoint must keep of the collector (the reward-scaling statistics)."""
+        return {"reward_rms": self.reward_rms} if self.reward_rms is not None else {}
 
     @torch.no_grad()
-    def collect(self, agent: ActorCritic, buf: RolloutBuffer) -> int:
-        """Fill ``buf`` with T steps; returns the number of env steps taken (T * N)."""
-        device = buf.values.device
-        num_steps = buf.rewards.shape[0]
-        for t in range(num_steps):
+    def collect(self, agent: ActorCritic) -> RolloutBatch:
+        """Fill the buffer with T steps of ``agent`` in each env; return them with GAE(lambda)
+        advantages as a flat batch of B = T * N samples."""
+        buf, device = self.buffer, self.buffer.values.device
+        for t in range(len(buf.rewards)):
             obs = torch.as_tensor(self.obs, device=device)
             dist = agent.distribution(obs)
             action = dist.sample()
@@ -102,12 +133,10 @@ class RolloutCollector:
             buf.log_probs[t] = dist.log_prob(action)
             buf.values[t] = agent.value(obs)
 
-            started = time.perf_counter()
-            self.obs, reward, terminated, truncated, info = self.envs.step(agent.to_env(action))
-            self.env_seconds += time.perf_counter() - started
-
+            with self.run.timing.env:
+                self.obs, reward, terminated, truncated, info = self.envs.step(agent.to_env(action))
             done = terminated | truncated
-            self._record_episodes(reward, done, info)
+            self.run.episodes.step(reward, done, info)
             buf.rewards[t] = reward
             buf.terminated[t] = terminated
             buf.dones[t] = done
@@ -122,17 +151,7 @@ class RolloutCollector:
         buf.next_values[:-1] = np.where(buf.dones[:-1], buf.next_values[:-1], buf.values[1:].cpu().numpy())
         last_value = agent.value(torch.as_tensor(self.obs, device=device)).cpu().numpy()
         buf.next_values[-1] = np.where(buf.dones[-1], buf.next_values[-1], last_value)
-        return num_steps * self.envs.num_envs
-
-    def _record_episodes(self, reward: np.ndarray, done: np.ndarray, info: dict) -> None:
-        self.episode_return += reward
-        self.episode_length += 1
-        if done.any():
-            final_info = info.get("final_info", {})
-            for i in np.flatnonzero(done):
-                self.run.stats.add(self.episode_return[i], self.episode_length[i], episode_info(final_info, i))
-            self.episode_return[done] = 0.0
-            self.episode_length[done] = 0
+        return buf.batch(self.gamma, self.gae_lambda)
 
     def _scale_rewards(self, buf: RolloutBuffer) -> None:
         """Divide the rollout's rewards by the running std of the discounted return.
@@ -148,44 +167,8 @@ class RolloutCollector:
         self.reward_rms.update(torch.as_tensor(returns.reshape(-1)))
         buf.rewards[:] = self.reward_rms.scale(torch.as_tensor(buf.rewards)).numpy()
 
-
-def train_actor_critic(cfg, run, agent: ActorCritic, optimizer: torch.optim.Optimizer,
-                       update: Callable[[RolloutBatch], dict[str, float]], log_every: int = 1) -> None:
-    """The loop A2C and PPO share: collect T steps in each of N envs, update, log, checkpoint.
-
-    ``update(batch)`` is the algorithm's own part: one gradient step (A2C) or epochs of
-    minibatch steps (PPO). ``cfg.algo_params`` provides num_steps, gamma, gae_lambda, lr,
-    anneal_lr and normalize_reward.
-    """
-    hp = cfg.algo_params
-    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.SAME_STEP)
-    collector = RolloutCollector(envs, run, hp.gamma, hp.normalize_reward)
-    modules = {"policy": agent, **({"reward_rms": collector.reward_rms} if collector.reward_rms is not None else {})}
-    optimizers = {"policy": optimizer}
-    run.restore(modules, optimizers)
-    run.checkpoint_if_due(modules, optimizers)
-    buf = RolloutBuffer(hp.num_steps, envs.num_envs, envs.single_observation_space, envs.single_action_space,
-                        run.device)
-    try:
-        while not run.done:
-            if hp.anneal_lr:  # linear decay to 0 over the run (a function of the step, so resume-safe)
-                optimizer.param_groups[0]["lr"] = hp.lr * max(0.0, 1.0 - run.step / cfg.steps)
-            started = time.perf_counter()
-            env_before = collector.env_seconds
-            steps = collector.collect(agent, buf)
-            collected = time.perf_counter()
-            stats = update(buf.batch(hp.gamma, hp.gae_lambda))
-            if agent.obs_rms is not None:  # after the update, so rollout and update saw the same statistics
-                agent.obs_rms.update(buf.obs.flatten(0, 1).float())
-            updated = time.perf_counter()
-            run.iteration += 1
-            run.advance(steps)
-            if run.iteration % log_every == 0 or run.done:
-                run.log({**stats, "charts/lr": optimizer.param_groups[0]["lr"],
-                         **iteration_timing(started, collected, updated, collector.env_seconds - env_before)})
-            run.checkpoint_if_due(modules, optimizers)
-    finally:
-        envs.close()
+    def close(self) -> None:
+        self.envs.close()
 
 
 class EpisodeStorage:

@@ -1,37 +1,95 @@
-"""What surrounds every trainer's loop: the run directory, seeding, tracking, progress bar,
-checkpoints and resume. The loop itself lives in each ``drivelab/algos/<algo>.py``.
+"""What surrounds every trainer's loop: the run directory, seeding, episode statistics, metric
+logging, periodic evaluation, checkpoints and resume. The loop itself lives in each
+``drivelab/algos/<algo>.py`` and calls these parts; nothing here calls the algorithm back.
+
+A loop looks like this::
+
+    resumed = run.start(modules, optimizers, policy)     # restore on resume, step-0 checkpoint
+    while not run.done:
+        ... collect (with run.timing.env: envs.step(...)), compute targets ...
+        with run.timing.update:
+            run.record(update(...))                      # losses, averaged until the next log
+        run.end_iteration(steps)                         # log, evaluate, checkpoint when due
 
 Reproducibility: the torch RNG (action sampling, initialisation) is seeded with ``cfg.seed``; env
 resets take explicit seeds drawn from ``Run.rng``, a numpy Generator seeded with ``cfg.seed``.
 Both RNG states are saved in every checkpoint, so a resumed run continues the same streams.
+
+Metrics, the same for every algorithm (``metrics.csv``, TensorBoard, MLflow):
+
+* ``episode/return``, ``episode/length`` and, for driving envs, ``episode/success_rate``,
+  ``episode/crash_rate``, ``episode/out_of_road_rate``, ``episode/route_completion``,
+  ``episode/mean_abs_cte``, ``episode/reward/<term>``: means over the last ``stats_window``
+  finished training episodes;
+* ``loss/*`` and ``charts/*``: what the algorithm's update returns, averaged since the last log;
+* ``eval/*``: periodic deterministic evaluation (``eval.every``), the same keys as ``drivelab eval``;
+* ``perf/steps_per_s``: env steps per second of wall time since this process started training;
+  ``perf/env_fraction``, ``perf/update_fraction`` and ``perf/other_fraction``: the shares of
+  wall time since the last log spent stepping envs, in gradient updates, and in everything
+  else (policy inference during collection, storage, bookkeeping, evaluation, checkpoints).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
+import math
 import time
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
+from gymnasium.vector import AutoresetMode
+from tqdm.auto import tqdm
 
-from drivelab.checkpoint import Checkpoint, load_checkpoint, restore, save_checkpoint
-from drivelab.config import TrainConfig, config_to_dict, save_config
-from drivelab.episodes import EpisodeStats
-from drivelab.errors import DrivelabError
+from drivelab.checkpoint import Checkpoint, restore, save_checkpoint
+from drivelab.config import EnvConfig, TrainConfig, config_to_dict, save_config
+from drivelab.envs import make_vector_env
+from drivelab.episodes import EpisodeTracker
+from drivelab.evaluate import run_episodes
 from drivelab.track import Tracker
+
+# (tensors, JSON-able state) that a trainer saves beside its networks, e.g. a replay buffer.
+ExtraState = Callable[[], tuple[dict[str, torch.Tensor], dict[str, Any]]]
+
+
+class Section:
+    """Accumulates the wall time spent inside ``with section:`` blocks (reused, no allocation)."""
+
+    __slots__ = ("seconds", "_started")
+
+    def __init__(self) -> None:
+        self.seconds, self._started = 0.0, 0.0
+
+    def __enter__(self) -> None:
+        self._started = time.perf_counter()
+
+    def __exit__(self, *exc: object) -> None:
+        self.seconds += time.perf_counter() - self._started
+
+
+class Timing:
+    """Where wall time goes between two logs: env stepping, gradient updates, the rest."""
+
+    def __init__(self) -> None:
+        self.env, self.update = Section(), Section()
+        self._since = time.perf_counter()
+
+    def fractions(self) -> dict[str, float]:
+        """The shares since the last call (then restarts the count)."""
+        now = time.perf_counter()
+        wall = max(now - self._since, 1e-9)
+        env, update = self.env.seconds / wall, self.update.seconds / wall
+        self.env.seconds = self.update.seconds = 0.0
+        self._since = now
+        return {"perf/env_fraction": env, "perf/update_fraction": update,
+                "perf/other_fraction": max(0.0, 1.0 - env - update)}
 
 
 class Run:
-    """A training run's state and services. Trainers call, in their loop:
-
-    * :meth:`reset_seeds` for the seeds of env resets,
-    * :meth:`restore` once, after building their networks (no-op on a fresh run),
-    * :meth:`advance` after each batch of env steps, :meth:`log` for metrics,
-    * :meth:`checkpoint_if_due` at the end of each iteration (checkpoints are only taken at
-      iteration boundaries, where no episode is in flight, so resume is exact).
-    """
+    """A training run's state and services (see the module docstring for the loop they serve)."""
 
     def __init__(self, cfg: TrainConfig, resume_from: Checkpoint | None = None, progress: bool = True):
         self.cfg = cfg
@@ -44,19 +102,53 @@ class Run:
         self.rng = np.random.default_rng(cfg.seed)
         self.step = 0
         self.iteration = 0
-        self.stats = EpisodeStats(cfg.stats_window)
+        self.episodes = EpisodeTracker(cfg.env.num_envs, cfg.stats_window)
+        self.timing = Timing()
         self._resume_from = resume_from
         self._last_checkpoint_step = -1
+        self._best: float | None = None
         if resume_from is not None:
             self.step = resume_from.step
             self.iteration = int(resume_from.state.get("iteration", 0))
             self.rng.bit_generator.state = resume_from.state["numpy_rng"]
             self._last_checkpoint_step = self.step
+            self._best = resume_from.state.get("best")
+            if "episodes" in resume_from.state:
+                self.episodes.load_state(resume_from.state["episodes"])
+        self._next_log = self._after(self.step, cfg.log_every)
+        self._next_eval = self._after(self.step, cfg.eval.every) if cfg.eval.every else math.inf
+        self._sums: dict[str, torch.Tensor | float] = {}
+        self._counts: dict[str, int] = {}
+        self._modules: dict[str, torch.nn.Module] = {}
+        self._optimizers: dict[str, torch.optim.Optimizer] = {}
+        self._policy: torch.nn.Module | None = None
+        self._eval_envs = None
         self.tracker = Tracker(self.dir, cfg, resume_step=self.step if resume_from else None)
         self.pbar = tqdm(total=cfg.steps, initial=self.step, unit="step", dynamic_ncols=True,
                          disable=not progress, mininterval=0.5, smoothing=0.1)
         self._start_time = time.perf_counter()
         self._start_step = self.step
+
+    @staticmethod
+    def _after(step: int, every: int) -> int:
+        """The first multiple of ``every`` above ``step`` (schedules survive a resume)."""
+        return (step // every + 1) * every
+
+    # ---- set-up ---------------------------------------------------------------------------
+
+    def start(self, modules: dict[str, torch.nn.Module], optimizers: dict[str, torch.optim.Optimizer],
+              policy: torch.nn.Module) -> Checkpoint | None:
+        """Register what a checkpoint saves (``modules``, ``optimizers``) and what evaluation
+        plays (``policy``). When resuming, load their states and the torch RNG and return the
+        checkpoint (its ``state["trainer"]`` and ``tensors`` hold what the trainer saved itself,
+        e.g. a replay buffer); on a fresh run, save the initial policy as the step-0 checkpoint
+        (for before/after comparisons) and return None."""
+        self._modules, self._optimizers, self._policy = modules, optimizers, policy
+        if self._resume_from is not None:
+            restore(self._resume_from, modules, optimizers)
+            return self._resume_from
+        self._save()
+        return None
 
     def reset_seeds(self, mask: np.ndarray) -> list[int | None]:
         """Fresh seeds for the envs where ``mask`` is True (None elsewhere), for ``VectorEnv.reset``."""
@@ -64,23 +156,33 @@ class Run:
         it = iter(seeds.tolist())
         return [next(it) if m else None for m in mask]
 
-    def restore(self, modules: dict[str, torch.nn.Module], optimizers: dict[str, torch.optim.Optimizer]) -> Checkpoint | None:
-        """When resuming, load weights, optimiser and RNG states and return the checkpoint, whose
-        ``state["trainer"]`` and ``tensors`` hold what the trainer saved itself (e.g. a replay
-        buffer); on a fresh run, return None."""
-        if self._resume_from is None:
-            return None
-        restore(self._resume_from, modules, optimizers)
-        return self._resume_from
+    # ---- each iteration -------------------------------------------------------------------
 
-    def advance(self, steps: int) -> None:
+    def record(self, metrics: Mapping[str, torch.Tensor | float]) -> None:
+        """Add an update's metrics (0-d tensors or floats); they are logged as means over the
+        updates since the last log. Tensors are summed on their device: no host sync per update."""
+        for name, value in metrics.items():
+            if torch.is_tensor(value):
+                value = value.detach()
+            self._sums[name] = self._sums[name] + value if name in self._sums else value
+            self._counts[name] = self._counts.get(name, 0) + 1
+
+    def end_iteration(self, steps: int, extra_state: ExtraState | None = None) -> None:
+        """Count ``steps`` new env steps, then log, evaluate and checkpoint when each is due.
+
+        Call it where no update is half done; ``extra_state`` is called only when a checkpoint
+        is written."""
         self.step += int(steps)
-        if self.step > self.pbar.total:  # the last batch finishes its episodes past `steps`
-            self.pbar.total = self.step
-        self.pbar.update(int(steps))
-        means = self.stats.means()
-        if means:
-            self.pbar.set_postfix_str(f"return {means['episode/return']:.2f} (last {len(self.stats.returns)} ep)", refresh=False)
+        self.iteration += 1
+        self._progress(int(steps))
+        if self.step >= self._next_log or self.done:
+            self._next_log = self._after(self.step, self.cfg.log_every)
+            self.log(self._flush())
+        if self.step >= self._next_eval:
+            self._next_eval = self._after(self.step, self.cfg.eval.every)
+            self.evaluate()
+        if self._checkpoint_due():
+            self._save(extra_state)
 
     @property
     def done(self) -> bool:
@@ -90,81 +192,82 @@ class Run:
         limit = self.cfg.max_minutes
         return limit is not None and time.perf_counter() - self._start_time >= 60 * limit
 
-    def log(self, metrics: dict[str, float]) -> None:
-        elapsed = time.perf_counter() - self._start_time
-        metrics = {**self.stats.means(), **metrics,
-                   "perf/steps_per_s": (self.step - self._start_step) / max(elapsed, 1e-9)}
-        self.tracker.log(self.step, metrics)
+    def _progress(self, steps: int) -> None:
+        if self.step > self.pbar.total:  # the last batch finishes its episodes past `steps`
+            self.pbar.total = self.step
+        self.pbar.update(steps)
+        means = self.episodes.means()
+        if means:
+            text = f"return {means['episode/return']:.2f}"
+            if "episode/success_rate" in means:
+                text += f", success {means['episode/success_rate']:.0%}"
+            self.pbar.set_postfix_str(f"{text} (last {len(self.episodes.returns)} ep)", refresh=False)
 
-    def checkpoint_due(self) -> bool:
-        """True when a checkpoint is owed: none yet, ``checkpoint_every`` steps since the last, or
-        the end of training (and not already written at this step)."""
+    def _flush(self) -> dict[str, float]:
+        sums = {name: value / self._counts[name] for name, value in self._sums.items()}
+        self._sums, self._counts = {}, {}
+        if not sums:
+            return {}
+        # One host sync for all tensors: stack them, then .tolist().
+        tensors = {k: v for k, v in sums.items() if torch.is_tensor(v)}
+        values = dict(zip(tensors, torch.stack([t.float().cpu() for t in tensors.values()]).tolist())) if tensors else {}
+        return {**{k: float(v) for k, v in sums.items() if not torch.is_tensor(v)}, **values}
+
+    def log(self, metrics: Mapping[str, float]) -> None:
+        """Log ``metrics`` with the episode means and the perf/* numbers at the current step."""
+        elapsed = time.perf_counter() - self._start_time
+        self.tracker.log(self.step, {**self.episodes.means(), **metrics, **self.timing.fractions(),
+                                     "perf/steps_per_s": (self.step - self._start_step) / max(elapsed, 1e-9)})
+
+    # ---- evaluation and checkpoints -------------------------------------------------------
+
+    def evaluate(self) -> dict[str, float]:
+        """Deterministic episodes of the registered policy on the evaluation env (``cfg.eval``),
+        logged as ``eval/*``; a new best ``eval.best_metric`` is saved as ``checkpoints/best``."""
+        spec = self.cfg.eval
+        if self._eval_envs is None:
+            self._eval_envs = make_vector_env(eval_env_config(self.cfg), num_envs=min(spec.num_envs, spec.episodes),
+                                              autoreset_mode=AutoresetMode.DISABLED)
+        self._policy.eval()
+        summary = run_episodes(self._eval_envs, self._policy, spec.episodes, seed=spec.seed,
+                               device=self.device).summary()
+        self._policy.train()
+        self.tracker.log(self.step, {f"eval/{k}": v for k, v in summary.items() if k != "episodes"})
+        score = summary.get(spec.best_metric)
+        if score is not None and (self._best is None or score > self._best):
+            self._best = score
+            best = self._save(name="best")
+            (best / "eval.json").write_text(json.dumps({"step": self.step, **summary}, indent=1))
+        return summary
+
+    def _checkpoint_due(self) -> bool:
+        """None yet, ``checkpoint_every`` steps since the last, or the end of training."""
         if self.step == self._last_checkpoint_step:
             return False
         return (self._last_checkpoint_step < 0 or self.done
                 or self.step >= self._last_checkpoint_step + self.cfg.checkpoint_every)
 
-    def checkpoint_if_due(self, modules: dict[str, torch.nn.Module], optimizers: dict[str, torch.optim.Optimizer],
-                          trainer_state: dict[str, Any] | None = None,
-                          tensors: dict[str, torch.Tensor] | None = None, force: bool = False) -> Path | None:
-        """Save a checkpoint when ``checkpoint_every`` steps have passed since the last one, at the
-        end of training, or when forced. ``trainer_state`` (JSON-able) and ``tensors`` are saved
-        alongside and come back from :meth:`restore`."""
-        if not (force or self.checkpoint_due()):
-            return None
-        self._last_checkpoint_step = self.step
-        state = {
-            "iteration": self.iteration,
-            "numpy_rng": self.rng.bit_generator.state,
-            "config": config_to_dict(self.cfg),
-            "trainer": trainer_state or {},
-        }
-        return save_checkpoint(self.dir, self.step, modules=modules, optimizers=optimizers, tensors=tensors,
-                               state=state, keep=self.cfg.keep_checkpoints)
+    def _save(self, extra_state: ExtraState | None = None, name: str | None = None) -> Path:
+        tensors, trainer_state = extra_state() if extra_state is not None else ({}, {})
+        state = {"iteration": self.iteration, "numpy_rng": self.rng.bit_generator.state,
+                 "config": config_to_dict(self.cfg), "trainer": trainer_state, "best": self._best,
+                 "episodes": self.episodes.state()}
+        if name is None:
+            self._last_checkpoint_step = self.step
+        return save_checkpoint(self.dir, self.step, modules=self._modules, optimizers=self._optimizers,
+                               tensors=tensors, state=state, keep=self.cfg.keep_checkpoints, dirname=name)
 
     def close(self) -> None:
+        if self._eval_envs is not None:
+            self._eval_envs.close()
         self.pbar.close()
         self.tracker.close()
 
 
-def default_run_dir(cfg: TrainConfig) -> str:
-    safe_env = cfg.env.id.replace("/", "_")
-    return str(Path("runs") / f"{cfg.algo}-{safe_env}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}")
+def eval_env_config(cfg: TrainConfig) -> EnvConfig:
+    """The env config of periodic evaluation: the training env's, or ``eval.env_id`` with the
+    training env's wrappers and ``eval.kwargs`` instead of its kwargs."""
+    if cfg.eval.env_id is None or cfg.eval.env_id == cfg.env.id:
+        return dataclasses.replace(cfg.env, kwargs={**cfg.env.kwargs, **cfg.eval.kwargs})
+    return dataclasses.replace(cfg.env, id=cfg.eval.env_id, kwargs=dict(cfg.eval.kwargs))
 
-
-def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path:
-    """Train ``cfg.algo`` on ``cfg.env`` for ``cfg.steps`` env steps (continuing the latest
-    checkpoint in ``cfg.run_dir`` when ``resume``). Returns the run directory."""
-    from drivelab.algos import get_algo
-
-    spec = get_algo(cfg.algo)
-    if cfg.run_dir is None:
-        cfg.run_dir = default_run_dir(cfg)
-    checkpoint = None
-    if resume:
-        checkpoint = load_checkpoint(cfg.run_dir)
-        if checkpoint.step >= cfg.steps:
-            raise DrivelabError(
-                f"run {cfg.run_dir} is already at step {checkpoint.step} >= steps {cfg.steps}; pass a larger --steps to continue"
-            )
-    elif (Path(cfg.run_dir) / "checkpoints").exists():
-        raise DrivelabError(f"run directory {cfg.run_dir} already holds a run; use --resume {cfg.run_dir} or another --run-dir")
-    # Fail on a bad env id, env kwargs or an unsupported action space before a run directory exists.
-    from drivelab.envs import env_spaces
-
-    spec.build_policy(cfg, *env_spaces(cfg.env))
-    run = Run(cfg, resume_from=checkpoint, progress=progress)
-    try:
-        spec.train(cfg, run)
-    finally:
-        run.close()
-    return run.dir
-
-
-def iteration_timing(started: float, collected: float, updated: float, env_seconds: float) -> dict[str, float]:
-    """Where an iteration's wall time went; ``perf/overhead`` is the share spent neither stepping
-    envs nor in the gradient update (inference, storage, bookkeeping)."""
-    total = updated - started
-    update_seconds = updated - collected
-    return {"perf/env_s": env_seconds, "perf/update_s": update_seconds, "perf/iteration_s": total,
-            "perf/overhead": max(0.0, 1.0 - (env_seconds + update_seconds) / total) if total > 0 else 0.0}

@@ -1,7 +1,8 @@
 import pytest
 
 from drivelab.cli import parse_overrides, parse_value
-from drivelab.config import TrainConfig, build_config, config_to_dict, read_yaml, save_config
+from drivelab.api import build_config
+from drivelab.config import TrainConfig, config_to_dict, read_yaml, save_config
 from drivelab.errors import DrivelabError
 
 

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import drivelab  # noqa: F401
+from drivelab.config import EnvConfig
 from drivelab.envs import make_env
 from drivelab.envs.filters import apply_filters, binarize, crop, resize, sobel
 from drivelab.envs.rewards import cte_reward, lane_reward, progress_reward, score, validate_reward_config
@@ -18,8 +19,8 @@ from drivelab.errors import DrivelabError
 
 
 def _straight_road(lateral: float):
-    return make_env("MetaDrive-validation-v0", {"map": "S", "traffic_density": 0.0,
-                                                "vehicle_config": {"spawn_lateral": lateral}})
+    return make_env(EnvConfig(id="MetaDrive-validation-v0", kwargs={"map": "S", "traffic_density": 0.0,
+                                                                    "vehicle_config": {"spawn_lateral": lateral}}))
 
 
 @pytest.mark.parametrize("lateral", [1.0, -1.0])
@@ -93,7 +94,8 @@ def test_reward_config_errors_name_the_term():
 
 def test_shaped_reward_terms_reach_the_episode_metrics():
     reward = {"cte": {"scale": 1.0, "max_cte": 1.5}, "progress": {"scale": 100.0}}  # notebook 003: per step
-    env = make_env("drivelab/MetaDriveLaneFollow-v0", {"horizon": 20, "reward": reward}, fixed_throttle=0.3)
+    env = make_env(EnvConfig(id="drivelab/MetaDriveLaneFollow-v0", kwargs={"horizon": 20}, reward=reward,
+                             fixed_throttle=0.3))
     try:
         assert env.action_space.shape == (1,)
         env.reset(seed=1)
@@ -191,7 +193,7 @@ def test_fixed_throttle_action_shape():
 
 
 def test_top_down_task_gives_uint8_images_for_a_cnn():
-    env = make_env("drivelab/MetaDriveTopDown-v0")
+    env = make_env(EnvConfig(id="drivelab/MetaDriveTopDown-v0"))
     try:
         obs, _ = env.reset(seed=0)
         assert env.observation_space.shape == (84, 84, 5) and obs.dtype == np.uint8
@@ -206,14 +208,13 @@ def test_top_down_task_gives_uint8_images_for_a_cnn():
     ("ppo", {"id": "drivelab/MetaDriveTopDown-v0", "action_grid": "3x3"},            # CNN, discrete
      {"num_steps": 64, "num_minibatches": 2, "update_epochs": 1}),
     ("sac", {"id": "drivelab/MetaDriveLaneFollow-v0", "kwargs": {"target_speed": 8.0}},  # MLP, 1-D steering
-     {"learning_starts": 64, "batch_size": 32, "buffer_size": 1000, "hidden": [32], "eval_every": 0}),
+     {"learning_starts": 64, "batch_size": 32, "buffer_size": 1000, "hidden": [32]}),
 ])
 def test_driving_tasks_train_with_each_family(algo, env, params, tmp_path):
     from safetensors.torch import load_file
 
+    from drivelab.api import build_config, train
     from drivelab.checkpoint import list_checkpoints
-    from drivelab.config import build_config
-    from drivelab.run import train
 
     cfg = build_config({"algo": algo, "steps": 256, "seed": 0, "run_dir": str(tmp_path / algo),
                         "env": {"num_envs": 2, **env}, algo: params})
@@ -227,9 +228,9 @@ def test_duckietown_extra_is_clear_when_missing_or_runs_when_installed():
         import gym_duckietown  # noqa: F401
     except ImportError:
         with pytest.raises(DrivelabError, match="make duckietown"):
-            make_env("drivelab/DuckietownLaneFollow-v0")
+            make_env(EnvConfig(id="drivelab/DuckietownLaneFollow-v0"))
         pytest.skip("the Duckietown extra is not installed here (make duckietown)")
-    env = make_env("drivelab/DuckietownLaneFollow-v0")
+    env = make_env(EnvConfig(id="drivelab/DuckietownLaneFollow-v0"))
     try:
         assert env.observation_space.shape == (60, 80, 3) and env.action_space.shape == (2,)
         headings = {}
@@ -280,10 +281,10 @@ class _RandomPolicy:
 def test_ppo_learns_lane_following_better_than_random(tmp_path):
     from gymnasium.vector import AutoresetMode
 
-    from drivelab.config import build_config, read_yaml
+    from drivelab.api import build_config, evaluate_checkpoint, train
+    from drivelab.config import read_yaml
     from drivelab.envs import make_vector_env
-    from drivelab.evaluate import evaluate_checkpoint, run_episodes
-    from drivelab.run import train
+    from drivelab.evaluate import run_episodes
 
     cfg = build_config({**read_yaml("configs/ppo_lanefollow.yaml"), "steps": 30000, "seed": 0, "run_dir": str(tmp_path / "lf")})
     train(cfg, progress=False)

@@ -70,18 +70,18 @@ def test_seed_selects_scenario_within_the_split():
 @pytest.mark.parametrize("config", [{"use_render": True}, {"image_observation": True}])
 def test_features_that_need_3d_assets_fail_with_one_clear_line(config):
     with pytest.raises(DrivelabError) as err:
-        make_env("MetaDrive-validation-v0", {"config": config})
+        make_env(EnvConfig(id="MetaDrive-validation-v0", kwargs={"config": config}))
     message = str(err.value)
     assert "asset" in message and "pull_asset" in message and "\n" not in message
 
 
 def test_unknown_env_and_bad_kwargs_are_clear_errors():
     with pytest.raises(DrivelabError, match="unknown env id 'CartPole-v9'.*CartPole-v1"):
-        make_env("CartPole-v9")
+        make_env(EnvConfig(id="CartPole-v9"))
     with pytest.raises(DrivelabError, match="MetaDrive rejected its config"):
-        make_env("MetaDrive-validation-v0", {"no_such_option": 1})
+        make_env(EnvConfig(id="MetaDrive-validation-v0", kwargs={"no_such_option": 1}))
     with pytest.raises(DrivelabError, match="CartPole-v1"):
-        make_env("CartPole-v1", {"no_such_option": 1})
+        make_env(EnvConfig(id="CartPole-v1", kwargs={"no_such_option": 1}))
 
 
 def test_action_grid_table_is_steering_then_throttle():
@@ -102,7 +102,7 @@ class _BoxEnv(gym.Env):
 
 
 def test_full_throttle_straight_drives_forward_along_the_lane():
-    env = make_env("MetaDrive-validation-v0", {"traffic_density": 0.0}, action_grid="3x3")
+    env = make_env(EnvConfig(id="MetaDrive-validation-v0", kwargs={"traffic_density": 0.0}, action_grid="3x3"))
     try:
         env.reset(seed=0)
         agent = env.unwrapped.metadrive.agent

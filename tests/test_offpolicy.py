@@ -12,11 +12,12 @@ from safetensors.torch import load_file
 from drivelab.algos.sac import soft_td_target
 from drivelab.algos.td3 import td_target
 from drivelab.checkpoint import list_checkpoints
-from drivelab.config import build_config, read_yaml
+from drivelab.api import build_config
+from drivelab.config import read_yaml
 from drivelab.errors import DrivelabError
-from drivelab.evaluate import evaluate_checkpoint
-from drivelab.offpolicy import EnsembleLinear, OffPolicyAgent, polyak_update, squashed_gaussian_log_prob
-from drivelab.run import train
+from drivelab.api import evaluate_checkpoint
+from drivelab.nets import EnsembleLinear, OffPolicyAgent, polyak_update, squashed_gaussian_log_prob
+from drivelab.api import train
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
@@ -73,7 +74,7 @@ def test_discrete_actions_are_refused_clearly():
 def _pendulum(run_dir, algo, steps, **params):
     return build_config({"algo": algo, "steps": steps, "seed": 0, "run_dir": str(run_dir), "checkpoint_every": 300,
                          "env": {"id": "Pendulum-v1", "num_envs": 1},
-                         algo: {"learning_starts": 200, "hidden": [32, 32], "batch_size": 32, "eval_every": 0, **params}})
+                         algo: {"learning_starts": 200, "hidden": [32, 32], "batch_size": 32, **params}})
 
 
 def test_resume_continues_with_the_same_replay_buffer(tmp_path):
@@ -92,8 +93,7 @@ def test_resume_continues_with_the_same_replay_buffer(tmp_path):
 def test_sac_learns_from_images_with_a_cnn(tmp_path):
     cfg = build_config({"algo": "sac", "steps": 150, "seed": 0, "run_dir": str(tmp_path / "img"),
                         "env": {"id": "CarRacing-v3", "num_envs": 1},
-                        "sac": {"learning_starts": 100, "buffer_size": 1000, "batch_size": 8, "hidden": [32],
-                                "eval_every": 0}})
+                        "sac": {"learning_starts": 100, "buffer_size": 1000, "batch_size": 8, "hidden": [32]}})
     train(cfg, progress=False)
     tensors = load_file(str(list_checkpoints(tmp_path / "img")[-1] / "tensors.safetensors"))
     assert tensors["replay/obs"].dtype == torch.uint8
@@ -109,7 +109,7 @@ def test_sac_learns_from_images_with_a_cnn(tmp_path):
 def test_sac_and_td3_swing_up_the_pendulum(algo, tmp_path):
     shipped = read_yaml(CONFIGS / f"{algo}_pendulum.yaml")
     cfg = build_config({**shipped, "steps": 12000, "seed": 0, "run_dir": str(tmp_path / algo),
-                        algo: {**shipped[algo], "eval_every": 0}})
+                        "eval": {"every": 0}})
     train(cfg, progress=False)
     result, _, _ = evaluate_checkpoint(tmp_path / algo, episodes=10)
     assert result.summary()["return_mean"] >= -250, result.summary()
@@ -119,7 +119,7 @@ def test_sac_and_td3_swing_up_the_pendulum(algo, tmp_path):
 def test_ddpg_improves_on_pendulum(tmp_path):
     shipped = read_yaml(CONFIGS / "ddpg_pendulum.yaml")
     cfg = build_config({**shipped, "steps": 8000, "seed": 0, "run_dir": str(tmp_path / "ddpg"),
-                        "ddpg": {**shipped["ddpg"], "eval_every": 0}})
+                        "eval": {"every": 0}})
     train(cfg, progress=False)
     before, _, _ = evaluate_checkpoint(list_checkpoints(tmp_path / "ddpg")[0], episodes=10)
     after, _, _ = evaluate_checkpoint(tmp_path / "ddpg", episodes=10)

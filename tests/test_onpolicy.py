@@ -7,15 +7,17 @@ import torch
 from gymnasium.vector import AutoresetMode
 
 from drivelab.algos import grpo
-from drivelab.config import EnvConfig, build_config
+from drivelab.api import build_config
+from drivelab.config import EnvConfig
 from drivelab.envs import env_spaces, make_vector_env
-from drivelab.evaluate import evaluate_checkpoint
+from drivelab.api import evaluate_checkpoint
 from drivelab.losses import approx_kl, clipped_surrogate_loss, value_loss
 from drivelab.nets import ActorCritic
 from drivelab.normalize import RunningMeanStd
 from drivelab.returns import gae, group_relative_advantages, group_relative_step_advantages
-from drivelab.rollout import EpisodeStorage, RolloutBuffer, RolloutCollector
-from drivelab.run import Run, train
+from drivelab.rollout import EpisodeStorage, RolloutCollector
+from drivelab.api import train
+from drivelab.run import Run
 
 
 def test_gae_by_hand():
@@ -59,14 +61,13 @@ def test_collector_uses_the_value_of_the_final_observation_on_truncation(tmp_pat
     obs_space, act_space = env_spaces(cfg.env)
     agent = ActorCritic(obs_space, act_space, [8])
     agent.value = lambda obs: 100.0 * obs[:, 0] + 7.0   # a critic we can compute by hand
-    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.SAME_STEP)
     run = Run(cfg, progress=False)
+    collector = RolloutCollector(cfg.env, run, num_steps=6, gamma=0.99, gae_lambda=0.95, scale_rewards=False)
+    buf = collector.buffer
     try:
-        collector = RolloutCollector(envs, run, gamma=0.99, scale_rewards=False)
-        buf = RolloutBuffer(6, 2, obs_space, act_space, torch.device("cpu"))
-        collector.collect(agent, buf)
+        collector.collect(agent)
     finally:
-        envs.close()
+        collector.close()
         run.close()
     # CartPole does not fall within 4 steps: every episode is truncated at its 4th step (row 3).
     assert buf.dones[3].all() and not buf.terminated.any()

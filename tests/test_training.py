@@ -8,9 +8,9 @@ import torch
 from safetensors.torch import load_file
 
 from drivelab.checkpoint import resolve_checkpoint
-from drivelab.config import build_config
-from drivelab.evaluate import evaluate_checkpoint
-from drivelab.run import train
+from drivelab.api import build_config
+from drivelab.api import evaluate_checkpoint
+from drivelab.api import train
 
 
 def _cartpole(run_dir, steps, **extra):

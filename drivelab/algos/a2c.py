@@ -7,49 +7,42 @@ A2C), and takes ONE gradient step on
     L = -mean(log pi(a|s) * A) + vf_coef * 0.5 * mean((V(s) - R)^2) - ent_coef * H[pi(.|s)].
 
 No clipping, no epochs: every sample is used once, by the policy that collected it (which is
-what makes the plain policy gradient unbiased). The rollout loop is PPO's (:func:`drivelab.rollout.train_actor_critic`).
+what makes the plain policy gradient unbiased). The collector is PPO's
+(:class:`drivelab.rollout.RolloutCollector`); the iterations are tiny (T * N = 40 steps by
+default), so metrics are averaged over the iterations between two logs.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import gymnasium as gym
 import torch
 
 from drivelab.config import TrainConfig
-from drivelab.envs import env_spaces
 from drivelab.errors import DrivelabError
 from drivelab.losses import explained_variance, policy_gradient_loss, value_loss
 from drivelab.nets import ActorCritic
-from drivelab.rollout import RolloutBatch, train_actor_critic
+from drivelab.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
+from drivelab.optim import gradient_step, linear_decay, set_learning_rate
 from drivelab.run import Run
 
 
 @dataclass
-class Params:
+class Params(ActorCriticParams):
+    """A2C's defaults (A3C's paper and SB3); the shared fields are in
+    :class:`drivelab.rollout.ActorCriticParams`."""
     lr: float = 7e-4
     anneal_lr: bool = False
-    num_steps: int = 5            # rollout length T per env (n in n-step returns)
-    gamma: float = 0.99
-    gae_lambda: float = 1.0
-    ent_coef: float = 0.0
-    vf_coef: float = 0.5
-    max_grad_norm: float = 0.5
+    num_steps: int = 5            # n in n-step returns
+    gae_lambda: float = 1.0       # lambda = 1: the n-step returns of the original A2C
     norm_adv: bool = False
-    # rmsprop (as in the A3C paper and SB3) or adam
-    optimizer: str = "rmsprop"
-    normalize_obs: bool = False
-    normalize_reward: bool = False
-    hidden: list[int] = field(default_factory=lambda: [64, 64])
-    activation: str = "tanh"
-    log_std_init: float = 0.0
+    optimizer: str = "rmsprop"    # rmsprop (as in the A3C paper and SB3) or adam
 
     def validate(self) -> None:
+        super().validate()
         if self.optimizer not in ("rmsprop", "adam"):
             raise DrivelabError(f"config field 'a2c.optimizer' must be rmsprop or adam, got {self.optimizer!r}")
-        if self.num_steps < 1:
-            raise DrivelabError("config field 'a2c.num_steps' must be >= 1")
 
 
 def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> ActorCritic:
@@ -57,8 +50,8 @@ def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -
     return ActorCritic(obs_space, act_space, hp.hidden, hp.activation, hp.log_std_init, obs_norm=hp.normalize_obs)
 
 
-def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutBatch, hp: Params) -> dict[str, float]:
-    """One gradient step on the whole rollout."""
+def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutBatch, hp: Params) -> dict[str, torch.Tensor]:
+    """One gradient step on the whole rollout (B = T * N samples); returns the losses (0-d)."""
     dist = agent.distribution(batch.obs)
     adv = batch.advantages
     if hp.norm_adv:
@@ -67,21 +60,34 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutB
     v_loss = value_loss(agent.value(batch.obs), batch.values, batch.returns, clip_coef=None)
     entropy = dist.entropy().mean()
     loss = pg_loss + hp.vf_coef * v_loss - hp.ent_coef * entropy
-    optimizer.zero_grad()
-    loss.backward()
-    torch.nn.utils.clip_grad_norm_(agent.parameters(), hp.max_grad_norm)
-    optimizer.step()
-    logged = torch.stack([pg_loss, v_loss, entropy, explained_variance(batch.values, batch.returns)]).tolist()
-    return dict(zip(("loss/policy", "loss/value", "loss/entropy", "loss/explained_variance"), logged))
+    gradient_step(optimizer, loss, agent.parameters(), hp.max_grad_norm)
+    return {"loss/policy": pg_loss.detach(), "loss/value": v_loss.detach(), "loss/entropy": entropy.detach(),
+            "loss/explained_variance": explained_variance(batch.values, batch.returns)}
+
+
+def make_optimizer(agent: ActorCritic, hp: Params) -> torch.optim.Optimizer:
+    if hp.optimizer == "rmsprop":  # A3C's settings (alpha 0.99, eps 1e-5)
+        return torch.optim.RMSprop(agent.parameters(), lr=hp.lr, alpha=0.99, eps=1e-5)
+    return torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
 
 
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    agent = build_policy(cfg, *env_spaces(cfg.env)).to(run.device)
-    if hp.optimizer == "rmsprop":  # A3C's settings (alpha 0.99, eps 1e-5)
-        optimizer = torch.optim.RMSprop(agent.parameters(), lr=hp.lr, alpha=0.99, eps=1e-5)
-    else:
-        optimizer = torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
-    # A2C iterations are tiny (T * N steps): log about every 1000 steps to keep tracking cheap.
-    log_every = max(1, 1000 // (hp.num_steps * cfg.env.num_envs))
-    train_actor_critic(cfg, run, agent, optimizer, lambda batch: update(agent, optimizer, batch, hp), log_every)
+    collector = RolloutCollector(cfg.env, run, num_steps=hp.num_steps, gamma=hp.gamma, gae_lambda=hp.gae_lambda,
+                                 scale_rewards=hp.normalize_reward)
+    agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
+    optimizer = make_optimizer(agent, hp)
+    run.start({"policy": agent, **collector.modules()}, {"policy": optimizer}, policy=agent)
+    try:
+        while not run.done:
+            lr = linear_decay(hp.lr, run.step, cfg.steps) if hp.anneal_lr else hp.lr
+            set_learning_rate(optimizer, lr)
+            batch = collector.collect(agent)                  # T steps x N envs, GAE(lambda)
+            with run.timing.update:
+                losses = update(agent, optimizer, batch, hp)  # one gradient step
+            if agent.obs_rms is not None:                     # after the update: both saw the same statistics
+                agent.obs_rms.update(batch.obs.float())
+            run.record({**losses, "charts/lr": lr})
+            run.end_iteration(collector.steps_per_rollout)
+    finally:
+        collector.close()

@@ -10,33 +10,32 @@ notebook 004's DDPG from learning, and how this file avoids each bug.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import gymnasium as gym
 import torch
 
-from drivelab.algos.td3 import exploration, td_target
 from drivelab.buffers import ReplayBatch
 from drivelab.config import TrainConfig
-from drivelab.envs import env_spaces
-from drivelab.errors import DrivelabError
-from drivelab.offpolicy import (OffPolicyAgent, OffPolicyParams, StatAccumulator, make_optimizers, make_target,
-                                polyak_update, train_off_policy)
+from drivelab.nets import OffPolicyAgent, make_target, polyak_update
+from drivelab.offpolicy import NoisyExploration, NoisyExplorationParams, ReplayCollector, make_optimizers
+from drivelab.optim import gradient_step
 from drivelab.run import Run
 
 
 @dataclass
-class Params(OffPolicyParams):
+class Params(NoisyExplorationParams):
     actor_lr: float = 1e-4            # the paper: 1e-4 actor, 1e-3 critic
     critic_lr: float = 1e-3
-    noise: str = "ou"                 # exploration noise: ou | gaussian
+    noise: str = "ou"
     noise_std: float = 0.2
     noise_std_final: float = 0.05
     noise_decay_steps: int = 50_000
 
-    def validate(self) -> None:
-        super().validate()
-        if self.noise not in ("gaussian", "ou"):
-            raise DrivelabError(f"config field 'ddpg.noise' must be gaussian or ou, got {self.noise!r}")
+
+class Optimizers(NamedTuple):
+    critic: torch.optim.Optimizer     # the critic and the (image) encoder
+    actor: torch.optim.Optimizer
 
 
 def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> OffPolicyAgent:
@@ -44,34 +43,48 @@ def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -
     return OffPolicyAgent(obs_space, act_space, hp.hidden, hp.activation, stochastic=False, critics=1)
 
 
+def ddpg_target(rewards: torch.Tensor, terminated: torch.Tensor, next_q: torch.Tensor, gamma: float) -> torch.Tensor:
+    """y = r + gamma * (1 - terminated) * Q'(s', mu'(s')); next_q (1, B), the rest (B,).
+    Truncated steps bootstrap: a time limit is not a terminal state."""
+    return rewards + gamma * (1.0 - terminated) * next_q[0]
+
+
+def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch: ReplayBatch,
+           hp: Params) -> dict[str, torch.Tensor]:
+    """One critic step and one actor step on B transitions, then Polyak averaging of the targets."""
+    with torch.no_grad():
+        next_features = target.features(batch.next_obs)
+        y = ddpg_target(batch.rewards, batch.terminated, target.critic(next_features, target.actor(next_features)), hp.gamma)
+    features = agent.features(batch.obs)
+    q = agent.critic(features, batch.actions)           # (1, B)
+    loss_q = (q - y).pow(2).mean()
+    gradient_step(opt.critic, loss_q)
+    detached = features.detach()
+    loss_pi = -agent.critic(detached, agent.actor(detached)).mean()
+    gradient_step(opt.actor, loss_pi)
+    polyak_update(target, agent, hp.tau)
+    return {"loss/critic": loss_q.detach(), "loss/actor": loss_pi.detach(), "charts/q": q.mean().detach()}
+
+
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    obs_space, act_space = env_spaces(cfg.env)
-    agent = build_policy(cfg, obs_space, act_space).to(run.device)
+    collector = ReplayCollector(cfg.env, hp, run, seed=cfg.seed)
+    explore = NoisyExploration(hp, collector.num_envs, collector.act_space.shape[0], seed=cfg.seed)
+    agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
     target = make_target(agent)
-    optimizers = make_optimizers(agent, hp)
-    critic_opt, actor_opt = optimizers["critic"], optimizers["actor"]
-    stats = StatAccumulator("loss/critic", "loss/actor", "charts/q")
-
-    def update(batch: ReplayBatch) -> None:
-        with torch.no_grad():
-            next_features = target.features(batch.next_obs)
-            y = td_target(batch.rewards, batch.terminated, target.critic(next_features, target.actor(next_features)), hp.gamma)
-        features = agent.features(batch.obs)
-        q = agent.critic(features, batch.actions)           # (1, B)
-        loss_q = (q - y).pow(2).mean()
-        critic_opt.zero_grad()
-        loss_q.backward()
-        critic_opt.step()
-        detached = features.detach()
-        loss_pi = -agent.critic(detached, agent.actor(detached)).mean()
-        actor_opt.zero_grad()
-        loss_pi.backward()
-        actor_opt.step()
-        polyak_update(target, agent, hp.tau)
-        stats.add(loss_q, loss_pi, q.mean())
-
-    explore, reset_noise = exploration(agent, hp, cfg.env.num_envs, act_space.shape[0], cfg.seed)
-    train_off_policy(cfg, run, agent, modules={"policy": agent, "target": target},
-                     optimizers=optimizers,
-                     explore=explore, update=update, end_episodes=reset_noise, flush_stats=stats.flush)
+    opt = Optimizers(**make_optimizers(agent, hp))
+    if hp.compile:
+        agent.compile_networks()
+    collector.start(run.start({"policy": agent, "target": target}, opt._asdict(), policy=agent))
+    try:
+        while not run.done:
+            heat_up = run.step < hp.learning_starts     # uniform random actions until then
+            action = collector.random_actions() if heat_up else explore(agent, collector.obs_tensor(), run.step)
+            done = collector.step(agent, action)
+            explore.end_episodes(done)                  # the OU process restarts with each episode
+            for batch in collector.batches():           # utd gradient steps per env step
+                with run.timing.update:
+                    run.record(update(agent, target, opt, batch, hp))
+            run.end_iteration(collector.num_envs, extra_state=collector.state)
+    finally:
+        collector.close()

@@ -32,8 +32,7 @@ reached CartPole's 500-step limit) has zero advantage and teaches nothing.
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import gymnasium as gym
@@ -42,18 +41,18 @@ import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from drivelab.config import TrainConfig
-from drivelab.envs import env_spaces, make_vector_env
-from drivelab.episodes import episode_info
+from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
 from drivelab.losses import approx_kl, clipped_surrogate_loss
-from drivelab.nets import ActorCritic
+from drivelab.nets import ActorCritic, PolicyNetParams
 from drivelab.returns import group_relative_advantages, group_relative_step_advantages, reward_to_go
 from drivelab.rollout import EpisodeStorage
-from drivelab.run import Run, iteration_timing
+from drivelab.optim import gradient_step, linear_decay, set_learning_rate
+from drivelab.run import Run
 
 
 @dataclass
-class Params:
+class Params(PolicyNetParams):
     group_size: int = 8           # G rollouts per start state; env.num_envs must be a multiple
     batch_steps: int = 4000       # minimum recorded steps per update (whole rounds on top)
     advantage: str = "return"     # return | reward_to_go
@@ -67,9 +66,6 @@ class Params:
     ent_coef: float = 0.0
     max_grad_norm: float = 0.5
     normalize_obs: bool = False
-    hidden: list[int] = field(default_factory=lambda: [64, 64])
-    activation: str = "tanh"
-    log_std_init: float = 0.0
 
     def validate(self) -> None:
         if self.group_size < 2:
@@ -112,8 +108,6 @@ def collect_group_rounds(envs: VectorEnv, agent: ActorCritic, storage: EpisodeSt
     rounds: list[Round] = []
     round_of = np.zeros(n, np.int64)              # the round each env belongs to (or last belonged to)
     recording = np.zeros(n, bool)                 # its current episode is part of the batch
-    episode_return = np.zeros(n)
-    episode_length = np.zeros(n, np.int64)
     recorded_steps = 0
 
     def start_rounds(group_ids: list[int], row: int) -> tuple[np.ndarray, list[int | None]]:
@@ -131,13 +125,16 @@ def collect_group_rounds(envs: VectorEnv, agent: ActorCritic, storage: EpisodeSt
         return mask, seeds
 
     _, seeds = start_rounds(list(range(n // hp.group_size)), 0)
-    obs, _ = envs.reset(seed=seeds)
+    with run.timing.env:
+        obs, _ = envs.reset(seed=seeds)
+    run.episodes.restart(np.ones(n, bool))
     t = 0
     while recording.any():
         storage.ensure(t)
         dist = agent.distribution(torch.as_tensor(obs, device=run.device))
         action = dist.sample()
-        next_obs, reward, terminated, truncated, info = envs.step(agent.to_env(action))
+        with run.timing.env:
+            next_obs, reward, terminated, truncated, info = envs.step(agent.to_env(action))
         done = terminated | truncated
         storage.obs[t] = obs
         storage.actions[t] = action.cpu().numpy()
@@ -147,14 +144,11 @@ def collect_group_rounds(envs: VectorEnv, agent: ActorCritic, storage: EpisodeSt
         storage.recorded[t] = recording
         storage.tag[t] = np.where(recording, round_of, -1)
         recorded_steps += int(recording.sum())
-        episode_return += reward
-        episode_length += 1
+        run.episodes.step(reward, done, info, counted=recording)
 
         reset, seeds = done.copy(), [None] * n
         finished = done & recording
         if finished.any():
-            for i in np.flatnonzero(finished):
-                run.stats.add(episode_return[i], episode_length[i], episode_info(info, i))
             recording[finished] = False
             complete = [g for g in np.unique(groups[finished]) if not recording[groups == g].any()]
             if complete and recorded_steps < hp.batch_steps:
@@ -165,9 +159,9 @@ def collect_group_rounds(envs: VectorEnv, agent: ActorCritic, storage: EpisodeSt
             # stepped, so they are reset too, into their round's start state.
             seeds = [seeds[i] if seeds[i] is not None or not reset[i] else rounds[round_of[i]].seed
                      for i in range(n)]
-            next_obs, _ = envs.reset(seed=seeds, options={"reset_mask": reset})
-            episode_return[reset] = 0.0
-            episode_length[reset] = 0
+            with run.timing.env:
+                next_obs, _ = envs.reset(seed=seeds, options={"reset_mask": reset})
+            run.episodes.restart(reset)
         obs = next_obs
         t += 1
     return rounds, recorded_steps, t
@@ -203,7 +197,9 @@ def grpo_loss(log_prob: torch.Tensor, old_log_prob: torch.Tensor, advantages: to
     return pg_loss + kl_coef * kl, kl
 
 
-def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: GroupBatch, hp: Params) -> dict[str, float]:
+def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: GroupBatch, hp: Params) -> dict[str, torch.Tensor]:
+    """``update_epochs`` passes of minibatch steps on :func:`grpo_loss` minus the entropy bonus
+    over the B recorded steps; returns the means of the logged statistics (0-d tensors)."""
     size = batch.obs.shape[0]
     minibatch = max(1, size // hp.num_minibatches)
     stats = torch.zeros(3)
@@ -217,13 +213,10 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: GroupBat
                                  hp.clip_coef, hp.kl_coef)
             entropy = dist.entropy().mean()
             loss = loss - hp.ent_coef * entropy
-            optimizer.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(agent.parameters(), hp.max_grad_norm)
-            optimizer.step()
+            gradient_step(optimizer, loss, agent.parameters(), hp.max_grad_norm)
             stats += torch.stack([loss, kl, entropy]).detach()
             steps += 1
-    mean = (stats / max(steps, 1)).tolist()
+    mean = stats / max(steps, 1)
     return {"loss/policy": mean[0], "loss/approx_kl": mean[1], "loss/entropy": mean[2]}
 
 
@@ -233,35 +226,31 @@ def train(cfg: TrainConfig, run: Run) -> None:
         raise DrivelabError(
             f"config field 'env.num_envs' ({cfg.env.num_envs}) must be a multiple of 'grpo.group_size' ({hp.group_size})"
         )
-    obs_space, act_space = env_spaces(cfg.env)
+    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED)
+    obs_space, act_space = envs.single_observation_space, envs.single_action_space
     agent = build_policy(cfg, obs_space, act_space).to(run.device)
     optimizer = torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
-    modules, optimizers = {"policy": agent}, {"policy": optimizer}
-    run.restore(modules, optimizers)
-    run.checkpoint_if_due(modules, optimizers)
-    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED)
+    run.start({"policy": agent}, {"policy": optimizer}, policy=agent)
     storage = EpisodeStorage(2 * -(-hp.batch_steps // envs.num_envs), envs.num_envs, obs_space, act_space)
     try:
         while not run.done:
             if hp.anneal_lr:
-                optimizer.param_groups[0]["lr"] = hp.lr * max(0.0, 1.0 - run.step / cfg.steps)
-            started = time.perf_counter()
+                set_learning_rate(optimizer, linear_decay(hp.lr, run.step, cfg.steps))
+            # 1. Group rounds (members of a group share a start seed) until batch_steps are recorded.
             rounds, steps, length = collect_group_rounds(envs, agent, storage, hp, run)
+            # 2. Each recorded step's advantage relative to its group: no critic.
             advantages = group_advantages(storage, rounds, length, hp)
             mask = storage.recorded[:length]
             batch = GroupBatch(*(torch.as_tensor(x[:length][mask], device=run.device)
                                  for x in (storage.obs, storage.actions, storage.log_probs)),
                                advantages=torch.as_tensor(advantages[mask], device=run.device))
-            collected = time.perf_counter()
-            stats = update(agent, optimizer, batch, hp)
+            # 3. Clipped-ratio epochs, as PPO's, without a value loss.
+            with run.timing.update:
+                run.record(update(agent, optimizer, batch, hp))
             if agent.obs_rms is not None:
                 agent.obs_rms.update(batch.obs.float())
-            updated = time.perf_counter()
-            run.iteration += 1
-            run.advance(steps)
-            run.log({**stats, "batch/rounds": len(rounds), "batch/steps": steps,
-                     "batch/zero_advantage_fraction": float((batch.advantages == 0).float().mean()),
-                     "perf/collect_s": collected - started, "perf/update_s": updated - collected})
-            run.checkpoint_if_due(modules, optimizers)
+            run.record({"batch/rounds": len(rounds), "batch/steps": steps,
+                        "batch/zero_advantage_fraction": float((advantages[mask] == 0).mean())})
+            run.end_iteration(steps)
     finally:
         envs.close()

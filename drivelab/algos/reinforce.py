@@ -20,8 +20,7 @@ sum (the standard finite-horizon treatment).
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import gymnasium as gym
@@ -30,18 +29,18 @@ import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from drivelab.config import TrainConfig
-from drivelab.envs import env_spaces, make_vector_env
-from drivelab.episodes import episode_info
+from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
 from drivelab.losses import policy_gradient_loss
-from drivelab.nets import Policy
+from drivelab.nets import Policy, PolicyNetParams
 from drivelab.returns import normalize, reward_to_go
 from drivelab.rollout import EpisodeStorage
+from drivelab.optim import gradient_step
 from drivelab.run import Run
 
 
 @dataclass
-class Params:
+class Params(PolicyNetParams):
     lr: float = 3e-3
     gamma: float = 0.99
     # Minimum recorded env steps per update; the episodes in flight are completed on top.
@@ -51,10 +50,6 @@ class Params:
     advantage: str = "normalize"
     # Clip the global gradient norm (0 = off).
     max_grad_norm: float = 0.0
-    hidden: list[int] = field(default_factory=lambda: [64, 64])
-    activation: str = "tanh"
-    # Initial log standard deviation of the Gaussian policy (continuous actions).
-    log_std_init: float = 0.0
 
     def validate(self) -> None:
         if self.advantage not in ("rtg", "mean", "normalize"):
@@ -86,7 +81,7 @@ def advantage_weights(returns: np.ndarray, mode: str) -> np.ndarray:
     return normalize(returns)
 
 
-def collect_episodes(envs: VectorEnv, policy: Policy, storage: EpisodeStorage, min_steps: int,
+def collect_episodes(envs: VectorEnv, policy: Policy, storage: EpisodeStorage, min_steps: int, gamma: float,
                      run: Run) -> tuple[EpisodeBatch, int]:
     """Run whole episodes until at least ``min_steps`` steps are recorded.
 
@@ -94,19 +89,19 @@ def collect_episodes(envs: VectorEnv, policy: Policy, storage: EpisodeStorage, m
     seeds from ``run``, so that no step is wasted on Gymnasium's next-step autoreset and every
     episode's seed is reproducible. Returns the batch and the number of recorded steps.
     """
-    hp: Params = run.cfg.algo_params
     num_envs = envs.num_envs
     everyone = np.ones(num_envs, bool)
-    obs, _ = envs.reset(seed=run.reset_seeds(everyone))
+    with run.timing.env:
+        obs, _ = envs.reset(seed=run.reset_seeds(everyone))
+    run.episodes.restart(everyone)
     recording = everyone.copy()      # env i's current episode belongs to the batch
-    episode_return = np.zeros(num_envs)
-    episode_length = np.zeros(num_envs, np.int64)
     recorded_steps = 0
     t = 0
     while recording.any():
         storage.ensure(t)
         action = policy.act(torch.as_tensor(obs, device=run.device))
-        next_obs, reward, terminated, truncated, info = envs.step(policy.to_env(action))
+        with run.timing.env:
+            next_obs, reward, terminated, truncated, info = envs.step(policy.to_env(action))
         done = terminated | truncated
         storage.obs[t] = obs
         storage.actions[t] = action.cpu().numpy()
@@ -114,22 +109,18 @@ def collect_episodes(envs: VectorEnv, policy: Policy, storage: EpisodeStorage, m
         storage.dones[t] = done
         storage.recorded[t] = recording
         recorded_steps += int(recording.sum())
-        episode_return += reward
-        episode_length += 1
+        run.episodes.step(reward, done, info, counted=recording)
         if done.any():
-            for i in np.flatnonzero(done & recording):
-                run.stats.add(episode_return[i], episode_length[i], episode_info(info, i))
-            episode_return[done] = 0.0
-            episode_length[done] = 0
             # Finished envs start a new recorded episode only while the budget is not reached.
             recording[done] &= recorded_steps < min_steps
             # Every finished env is reset (idle ones too: a finished env must not be stepped).
-            next_obs, _ = envs.reset(seed=run.reset_seeds(done), options={"reset_mask": done})
+            with run.timing.env:
+                next_obs, _ = envs.reset(seed=run.reset_seeds(done), options={"reset_mask": done})
         obs = next_obs
         t += 1
 
     mask = storage.recorded[:t]
-    returns = reward_to_go(storage.rewards[:t], storage.dones[:t], hp.gamma)
+    returns = reward_to_go(storage.rewards[:t], storage.dones[:t], gamma)
     batch = EpisodeBatch(
         obs=torch.as_tensor(storage.obs[:t][mask], device=run.device),
         actions=torch.as_tensor(storage.actions[:t][mask], device=run.device),
@@ -138,43 +129,36 @@ def collect_episodes(envs: VectorEnv, policy: Policy, storage: EpisodeStorage, m
     return batch, recorded_steps
 
 
-def update(policy: Policy, optimizer: torch.optim.Optimizer, batch: EpisodeBatch, hp: Params) -> dict[str, float]:
-    """One gradient step on the REINFORCE loss; returns the logged losses."""
+def update(policy: Policy, optimizer: torch.optim.Optimizer, batch: EpisodeBatch, hp: Params) -> dict[str, torch.Tensor]:
+    """One gradient step on the REINFORCE loss over the B steps of ``batch``; returns the logged
+    losses (0-d tensors)."""
     weights = torch.as_tensor(advantage_weights(batch.returns.cpu().numpy(), hp.advantage), device=batch.returns.device)
     dist = policy.distribution(batch.obs)
     pg_loss = policy_gradient_loss(dist.log_prob(batch.actions), weights)
     entropy = dist.entropy().mean()
     loss = pg_loss - hp.ent_coef * entropy
-    optimizer.zero_grad()
-    loss.backward()
-    grad_norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), hp.max_grad_norm if hp.max_grad_norm > 0 else float("inf"))
-    optimizer.step()
-    return {"loss/policy": pg_loss.item(), "loss/entropy": entropy.item(), "loss/grad_norm": grad_norm.item(),
-            "batch/return_to_go_mean": batch.returns.mean().item()}
+    grad_norm = gradient_step(optimizer, loss, policy.parameters(), hp.max_grad_norm if hp.max_grad_norm > 0 else float("inf"))
+    return {"loss/policy": pg_loss.detach(), "loss/entropy": entropy.detach(), "loss/grad_norm": grad_norm,
+            "batch/return_to_go_mean": batch.returns.mean()}
 
 
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    obs_space, act_space = env_spaces(cfg.env)
+    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED)
+    obs_space, act_space = envs.single_observation_space, envs.single_action_space
     policy = build_policy(cfg, obs_space, act_space).to(run.device)
     optimizer = torch.optim.Adam(policy.parameters(), lr=hp.lr)
-    run.restore({"policy": policy}, {"policy": optimizer})
-    modules, optimizers = {"policy": policy}, {"policy": optimizer}
-    run.checkpoint_if_due(modules, optimizers)  # the initial policy, for before/after comparisons
-
-    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED)
+    run.start({"policy": policy}, {"policy": optimizer}, policy=policy)
     storage = EpisodeStorage(2 * -(-hp.batch_steps // envs.num_envs), envs.num_envs, obs_space, act_space)
     try:
         while not run.done:
-            started = time.perf_counter()
-            batch, steps = collect_episodes(envs, policy, storage, hp.batch_steps, run)
-            collected = time.perf_counter()
-            losses = update(policy, optimizer, batch, hp)
-            updated = time.perf_counter()
-            run.iteration += 1
-            run.advance(steps)
-            run.log({**losses, "perf/collect_s": collected - started, "perf/update_s": updated - collected,
-                     "batch/steps": steps})
-            run.checkpoint_if_due(modules, optimizers)
+            # 1. Whole episodes until batch_steps steps are recorded; discounted rewards-to-go.
+            batch, steps = collect_episodes(envs, policy, storage, hp.batch_steps, hp.gamma, run)
+            # 2. One policy-gradient step.
+            with run.timing.update:
+                run.record(update(policy, optimizer, batch, hp))
+            run.record({"batch/steps": steps})
+            # 3. Log, evaluate and checkpoint when due (between iterations: no episode in flight).
+            run.end_iteration(steps)
     finally:
         envs.close()

@@ -3,29 +3,31 @@
 Maximises return plus entropy, E[sum_t r_t + alpha * H(pi(.|s_t))], with
 
 * a squashed Gaussian actor a = tanh(u), whose log-probability carries the tanh
-  change-of-variables correction (:func:`drivelab.offpolicy.squashed_gaussian_log_prob`);
+  change-of-variables correction (:func:`drivelab.nets.squashed_gaussian_log_prob`);
 * twin critics and a clipped double-Q target (Fujimoto et al. 2018), computed in one batched pass:
       y = r + gamma * (1 - terminated) * (min_e Q'_e(s', a') - alpha * log pi(a'|s')),  a' ~ pi(.|s');
 * the actor loss E[alpha * log pi(a|s) - min_e Q_e(s, a)] with a reparameterised a ~ pi(.|s);
 * alpha tuned so the policy's entropy tracks a target (-|A| by default):
       L(alpha) = -E[log alpha * (log pi(a|s) + target_entropy)].
 
-The shared loop (replay, heat-up, update-to-data ratio, evaluation, checkpoints) is
-:func:`drivelab.offpolicy.train_off_policy`.
+Shared parts used here: :class:`drivelab.offpolicy.ReplayCollector` (env stepping into the
+replay buffer, update-to-data ratio), the networks in :mod:`drivelab.nets`, and
+:class:`drivelab.run.Run` (logging, evaluation, checkpoints).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import gymnasium as gym
 import torch
 
 from drivelab.buffers import ReplayBatch
 from drivelab.config import TrainConfig
-from drivelab.envs import env_spaces
-from drivelab.offpolicy import (OffPolicyAgent, OffPolicyParams, StatAccumulator, make_optimizers, make_target,
-                                polyak_update, train_off_policy)
+from drivelab.nets import OffPolicyAgent, make_target, polyak_update
+from drivelab.offpolicy import OffPolicyParams, ReplayCollector, make_optimizers
+from drivelab.optim import gradient_step
 from drivelab.run import Run
 
 
@@ -41,6 +43,12 @@ class Params(OffPolicyParams):
     autotune: bool = True
     target_entropy: float | None = None   # None: -|A|
     actor_every: int = 1                  # actor and alpha update once every N critic updates
+
+
+class Optimizers(NamedTuple):
+    critic: torch.optim.Optimizer         # critics and the (image) encoder
+    actor: torch.optim.Optimizer
+    alpha: torch.optim.Optimizer          # log(alpha)
 
 
 def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> OffPolicyAgent:
@@ -60,58 +68,75 @@ def soft_td_target(rewards: torch.Tensor, terminated: torch.Tensor, next_q: torc
     return rewards + gamma * (1.0 - terminated) * (next_q.min(dim=0).values - alpha * next_log_prob)
 
 
+def actor_loss(log_prob: torch.Tensor, q_pi: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """E[alpha * log pi(a|s) - min_e Q_e(s, a)], a ~ pi(.|s) reparameterised; shapes (B,)."""
+    return (alpha * log_prob - q_pi).mean()
+
+
+def alpha_loss(log_alpha: torch.Tensor, log_prob: torch.Tensor, target_entropy: float) -> torch.Tensor:
+    """-E[log alpha * (log pi(a|s) + target_entropy)]: alpha rises while the entropy -log pi is
+    below its target and falls while it is above."""
+    return -(log_alpha * (log_prob.detach() + target_entropy)).mean()
+
+
+def update(agent: OffPolicyAgent, target: OffPolicyAgent, log_alpha: torch.Tensor, opt: Optimizers,
+           batch: ReplayBatch, hp: Params, target_entropy: float, update_actor: bool = True) -> dict[str, torch.Tensor]:
+    """One critic step on a batch of B transitions, then (when ``update_actor``) one actor and one
+    temperature step, then Polyak averaging of the target. Returns the logged values (0-d)."""
+    alpha = log_alpha.exp().detach()
+    with torch.no_grad():
+        next_action, next_log_prob = agent.actor(agent.features(batch.next_obs))
+        next_q = target.critic(target.features(batch.next_obs), next_action)
+        y = soft_td_target(batch.rewards, batch.terminated, next_q, next_log_prob, alpha, hp.gamma)
+    features = agent.features(batch.obs)
+    q = agent.critic(features, batch.actions)                   # (2, B)
+    loss_q = critic_loss(q, y)
+    gradient_step(opt.critic, loss_q)
+    logged = {"loss/critic": loss_q.detach(), "charts/q": q.mean().detach()}
+
+    if update_actor:
+        detached = features.detach()  # the actor does not train the (image) encoder
+        action, log_prob = agent.actor(detached)
+        loss_pi = actor_loss(log_prob, agent.critic(detached, action).min(dim=0).values, alpha)
+        gradient_step(opt.actor, loss_pi)
+        loss_alpha = alpha_loss(log_alpha, log_prob, target_entropy)
+        if hp.autotune:
+            gradient_step(opt.alpha, loss_alpha)
+        logged.update({"loss/actor": loss_pi.detach(), "loss/alpha": loss_alpha.detach(), "charts/alpha": alpha,
+                       "charts/entropy": -log_prob.mean().detach()})
+    polyak_update(target, agent, hp.tau)
+    return logged
+
+
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    obs_space, act_space = env_spaces(cfg.env)
-    agent = build_policy(cfg, obs_space, act_space).to(run.device)
+    collector = ReplayCollector(cfg.env, hp, run, seed=cfg.seed)
+    agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
+    log_alpha = torch.nn.Parameter(torch.tensor(float(hp.init_alpha)).log().to(run.device))
+    target_entropy = hp.target_entropy if hp.target_entropy is not None else -float(collector.act_space.shape[0])
     # Target networks: a Polyak-averaged copy of the agent (its encoder too, so y does not move
     # with the online critic's features). Only its encoder and critics are used.
     target = make_target(agent)
-    log_alpha = torch.nn.Parameter(torch.tensor(float(hp.init_alpha)).log().to(run.device))
-    target_entropy = hp.target_entropy if hp.target_entropy is not None else -float(act_space.shape[0])
-    optimizers = make_optimizers(agent, hp)
-    critic_opt, actor_opt = optimizers["critic"], optimizers["actor"]
-    alpha_opt = torch.optim.Adam([log_alpha], lr=hp.alpha_lr)
-    alpha_holder = torch.nn.ParameterDict({"log_alpha": log_alpha})
-    stats = StatAccumulator("loss/critic", "loss/actor", "loss/alpha", "charts/alpha", "charts/entropy", "charts/q")
+    opt = Optimizers(**make_optimizers(agent, hp), alpha=torch.optim.Adam([log_alpha], lr=hp.alpha_lr))
+    if hp.compile:
+        agent.compile_networks()
+    resumed = run.start({"policy": agent, "target": target, "alpha": torch.nn.ParameterDict({"log_alpha": log_alpha})},
+                        opt._asdict(), policy=agent)
+    collector.start(resumed)
     updates = 0
-
-    def update(batch: ReplayBatch) -> None:
-        nonlocal updates
-        alpha = log_alpha.exp().detach()
-        with torch.no_grad():
-            next_action, next_log_prob = agent.actor(agent.features(batch.next_obs))
-            next_q = target.critic(target.features(batch.next_obs), next_action)
-            y = soft_td_target(batch.rewards, batch.terminated, next_q, next_log_prob, alpha, hp.gamma)
-        features = agent.features(batch.obs)
-        q = agent.critic(features, batch.actions)
-        loss_q = critic_loss(q, y)
-        critic_opt.zero_grad()
-        loss_q.backward()
-        critic_opt.step()
-
-        if updates % hp.actor_every == 0:
-            detached = features.detach()  # the actor does not train the (image) encoder
-            action, log_prob = agent.actor(detached)
-            q_pi = agent.critic(detached, action).min(dim=0).values
-            loss_pi = (alpha * log_prob - q_pi).mean()
-            actor_opt.zero_grad()
-            loss_pi.backward()
-            actor_opt.step()
-            loss_alpha = -(log_alpha * (log_prob.detach() + target_entropy)).mean()
-            if hp.autotune:
-                alpha_opt.zero_grad()
-                loss_alpha.backward()
-                alpha_opt.step()
-            stats.add(loss_q, loss_pi, loss_alpha, alpha, -log_prob.mean(), q.mean())
-        polyak_update(target, agent, hp.tau)
-        updates += 1
-
-    def explore(obs: torch.Tensor, step: int):
-        return agent.act(obs).cpu().numpy()  # SAC explores by sampling its own stochastic policy
-
-    train_off_policy(cfg, run, agent,
-                     modules={"policy": agent, "target": target, "alpha": alpha_holder},
-                     optimizers={**optimizers, "alpha": alpha_opt},
-                     explore=explore, update=update, end_episodes=lambda done: None, flush_stats=stats.flush)
-
+    try:
+        while not run.done:
+            # 1. Act: uniform random during the heat-up, then a sample of the stochastic policy
+            #    (SAC explores with its own entropy-regularised policy, no added noise).
+            heat_up = run.step < hp.learning_starts
+            collector.step(agent, collector.random_actions() if heat_up else agent.act(collector.obs_tensor()).cpu().numpy())
+            # 2. utd gradient steps per env step on uniform replay batches.
+            for batch in collector.batches():
+                with run.timing.update:
+                    run.record(update(agent, target, log_alpha, opt, batch, hp, target_entropy,
+                                      update_actor=updates % hp.actor_every == 0))
+                updates += 1
+            # 3. Log, evaluate and checkpoint (with the replay buffer) when due.
+            run.end_iteration(collector.num_envs, extra_state=collector.state)
+    finally:
+        collector.close()

@@ -7,42 +7,43 @@ DDPG plus three fixes for its overestimation and instability:
 2. target policy smoothing: a' = clip(mu'(s') + clip(N(0, policy_noise), -noise_clip, noise_clip), -1, 1),
 3. delayed policy updates: the actor and the targets move once every ``policy_delay`` critic updates.
 
-Exploration adds Gaussian (or Ornstein-Uhlenbeck) noise to mu(s), with a linear schedule.
+Exploration adds Gaussian (or Ornstein-Uhlenbeck) noise to mu(s), with a linear schedule
+(:class:`drivelab.offpolicy.NoisyExploration`). The replay collector, networks and run services
+are the shared parts (:mod:`drivelab.offpolicy`, :mod:`drivelab.nets`, :mod:`drivelab.run`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import gymnasium as gym
-import numpy as np
 import torch
 
 from drivelab.buffers import ReplayBatch
 from drivelab.config import TrainConfig
-from drivelab.envs import env_spaces
 from drivelab.errors import DrivelabError
-from drivelab.offpolicy import (OffPolicyAgent, OffPolicyParams, StatAccumulator, linear_schedule, make_noise,
-                                make_optimizers, make_target, polyak_update, train_off_policy)
+from drivelab.nets import OffPolicyAgent, make_target, polyak_update
+from drivelab.offpolicy import NoisyExploration, NoisyExplorationParams, ReplayCollector, make_optimizers
+from drivelab.optim import gradient_step
 from drivelab.run import Run
 
 
 @dataclass
-class Params(OffPolicyParams):
+class Params(NoisyExplorationParams):
     policy_delay: int = 2
     policy_noise: float = 0.2         # target smoothing noise std (policy units)
     noise_clip: float = 0.5
-    noise: str = "gaussian"           # exploration noise: gaussian | ou
-    noise_std: float = 0.1            # exploration noise std at the start ...
-    noise_std_final: float = 0.1      # ... and after noise_decay_steps
-    noise_decay_steps: int = 0
 
     def validate(self) -> None:
         super().validate()
-        if self.noise not in ("gaussian", "ou"):
-            raise DrivelabError(f"config field 'td3.noise' must be gaussian or ou, got {self.noise!r}")
         if self.policy_delay < 1:
             raise DrivelabError(f"config field 'td3.policy_delay' must be >= 1, got {self.policy_delay}")
+
+
+class Optimizers(NamedTuple):
+    critic: torch.optim.Optimizer     # critics and the (image) encoder
+    actor: torch.optim.Optimizer
 
 
 def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> OffPolicyAgent:
@@ -51,60 +52,64 @@ def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -
 
 
 def td_target(rewards: torch.Tensor, terminated: torch.Tensor, next_q: torch.Tensor, gamma: float) -> torch.Tensor:
-    """y = r + gamma * (1 - terminated) * min_e Q'_e(s', a'); next_q (E, B), the rest (B,)."""
+    """y = r + gamma * (1 - terminated) * min_e Q'_e(s', a'); next_q (E, B), the rest (B,).
+    With one critic (E = 1) this is DDPG's target."""
     return rewards + gamma * (1.0 - terminated) * next_q.min(dim=0).values
 
 
 def smoothed_target_action(target_action: torch.Tensor, policy_noise: float, noise_clip: float) -> torch.Tensor:
-    """Target policy smoothing: mu'(s') plus clipped Gaussian noise, kept in [-1, 1]."""
+    """Target policy smoothing: mu'(s') plus clipped Gaussian noise, kept in [-1, 1]. (B, A)."""
     noise = (torch.randn_like(target_action) * policy_noise).clamp(-noise_clip, noise_clip)
     return (target_action + noise).clamp(-1.0, 1.0)
 
 
-def exploration(agent: OffPolicyAgent, hp, num_envs: int, act_dim: int, seed: int):
-    """explore(obs, step) = clip(mu(s) + noise, -1, 1) and the per-env noise reset, for DDPG/TD3."""
-    noise = make_noise(hp.noise, num_envs, act_dim, np.random.default_rng([seed, 2]))
-
-    def explore(obs: torch.Tensor, step: int) -> np.ndarray:
-        std = linear_schedule(hp.noise_std, hp.noise_std_final, hp.noise_decay_steps, step - hp.learning_starts)
-        return np.clip(agent.act(obs, deterministic=True).cpu().numpy() + noise.sample(std), -1.0, 1.0)
-
-    return explore, noise.reset
+def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch: ReplayBatch, hp: Params,
+           update_actor: bool) -> dict[str, torch.Tensor]:
+    """One critic step on B transitions; when ``update_actor`` (every ``policy_delay``-th call)
+    also one actor step on Q_1 and Polyak averaging of the targets. Returns the logged values."""
+    with torch.no_grad():
+        next_features = target.features(batch.next_obs)
+        next_action = smoothed_target_action(target.actor(next_features), hp.policy_noise, hp.noise_clip)
+        y = td_target(batch.rewards, batch.terminated, target.critic(next_features, next_action), hp.gamma)
+    features = agent.features(batch.obs)
+    q = agent.critic(features, batch.actions)                   # (2, B)
+    loss_q = (q - y).pow(2).mean(dim=1).sum()
+    gradient_step(opt.critic, loss_q)
+    logged = {"loss/critic": loss_q.detach(), "charts/q": q.mean().detach()}
+    if update_actor:
+        detached = features.detach()
+        loss_pi = -agent.critic(detached, agent.actor(detached))[0].mean()  # ascend Q_1 (the paper's choice)
+        gradient_step(opt.actor, loss_pi)
+        polyak_update(target, agent, hp.tau)
+        logged["loss/actor"] = loss_pi.detach()
+    return logged
 
 
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    obs_space, act_space = env_spaces(cfg.env)
-    agent = build_policy(cfg, obs_space, act_space).to(run.device)
+    collector = ReplayCollector(cfg.env, hp, run, seed=cfg.seed)
+    agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
     target = make_target(agent)
-    optimizers = make_optimizers(agent, hp)
-    critic_opt, actor_opt = optimizers["critic"], optimizers["actor"]
-    stats = StatAccumulator("loss/critic", "loss/actor", "charts/q")
-    updates = 0
-
-    def update(batch: ReplayBatch) -> None:
-        nonlocal updates
-        with torch.no_grad():
-            next_features = target.features(batch.next_obs)
-            next_action = smoothed_target_action(target.actor(next_features), hp.policy_noise, hp.noise_clip)
-            y = td_target(batch.rewards, batch.terminated, target.critic(next_features, next_action), hp.gamma)
-        features = agent.features(batch.obs)
-        q = agent.critic(features, batch.actions)
-        loss_q = (q - y).pow(2).mean(dim=1).sum()
-        critic_opt.zero_grad()
-        loss_q.backward()
-        critic_opt.step()
-        updates += 1
-        if updates % hp.policy_delay == 0:
-            detached = features.detach()
-            loss_pi = -agent.critic(detached, agent.actor(detached))[0].mean()  # ascend Q_1 (the paper's choice)
-            actor_opt.zero_grad()
-            loss_pi.backward()
-            actor_opt.step()
-            polyak_update(target, agent, hp.tau)
-            stats.add(loss_q, loss_pi, q.mean())
-
-    explore, reset_noise = exploration(agent, hp, cfg.env.num_envs, act_space.shape[0], cfg.seed)
-    train_off_policy(cfg, run, agent, modules={"policy": agent, "target": target},
-                     optimizers=optimizers,
-                     explore=explore, update=update, end_episodes=reset_noise, flush_stats=stats.flush)
+    opt = Optimizers(**make_optimizers(agent, hp))
+    if hp.compile:
+        agent.compile_networks()
+    explore = NoisyExploration(hp, collector.num_envs, collector.act_space.shape[0], seed=cfg.seed)
+    collector.start(run.start({"policy": agent, "target": target}, opt._asdict(), policy=agent))
+    critic_updates = 0
+    try:
+        while not run.done:
+            # 1. Act: uniform random during the heat-up, then mu(s) + exploration noise.
+            if run.step < hp.learning_starts:
+                action = collector.random_actions()
+            else:
+                action = explore(agent, collector.obs_tensor(), run.step)
+            explore.end_episodes(collector.step(agent, action))
+            # 2. Critic steps at the update-to-data ratio; the actor every policy_delay-th.
+            for batch in collector.batches():
+                critic_updates += 1
+                with run.timing.update:
+                    run.record(update(agent, target, opt, batch, hp, update_actor=critic_updates % hp.policy_delay == 0))
+            # 3. Log, evaluate and checkpoint (with the replay buffer) when due.
+            run.end_iteration(collector.num_envs, extra_state=collector.state)
+    finally:
+        collector.close()

@@ -6,9 +6,10 @@ MetaDrive ids (see :mod:`drivelab.envs.registration`).
 
 from __future__ import annotations
 
+import copy
 import difflib
 import functools
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import gymnasium as gym
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
@@ -34,47 +35,47 @@ def _check_id(env_id: str) -> None:
         raise DrivelabError(f"unknown env id '{env_id}'{hint}")
 
 
-def make_env(env_id: str, kwargs: dict[str, Any] | None = None, action_grid: str | None = None,
-             max_steering: float = 0.6, render_mode: str | None = None, fixed_throttle: float | None = None,
-             reward: dict[str, Any] | None = None, obs_filters: list[Any] | None = None) -> gym.Env:
-    """Build one environment, then drivelab's wrappers in this order: reward shaping, action
-    adapter (discrete grid or fixed throttle), observation filters.
+def make_env(cfg: EnvConfig, *, render_mode: str | None = None) -> gym.Env:
+    """Build one environment from a validated :class:`~drivelab.config.EnvConfig`, then drivelab's
+    wrappers in this order: reward shaping (``cfg.reward``), action adapter (``cfg.action_grid``
+    or ``cfg.fixed_throttle``), observation filters (``cfg.obs_filters``).
 
-    Args:
-        env_id: a registered Gymnasium id.
-        kwargs: keyword overrides for ``gym.make`` (for MetaDrive: any MetaDrive config key,
-            e.g. ``{"num_scenarios": 10, "traffic_density": 0.2}``).
-        action_grid: ``"NxM"`` turns a ``[steering, throttle]`` Box action into N x M discrete
-            actions (:class:`DiscreteActionGrid`).
-        max_steering: steering magnitude of the outermost grid columns.
-        render_mode: passed to ``gym.make`` (``"rgb_array"`` for videos).
-        fixed_throttle: steering-only actions at this throttle (:class:`FixedThrottle`).
-        reward: reward terms and weights (:mod:`drivelab.envs.rewards`).
-        obs_filters: observation filters (:mod:`drivelab.envs.filters`).
+    ``cfg.kwargs`` go to ``gym.make`` (for MetaDrive: any MetaDrive config key, e.g.
+    ``{"num_scenarios": 10, "traffic_density": 0.2}``). A task that shapes its reward itself
+    (lane following, Duckietown) has its terms replaced by ``cfg.reward``: one route per knob.
+    ``render_mode="rgb_array"`` is for videos.
     """
-    _check_id(env_id)
+    _check_id(cfg.id)
+    kwargs = cfg.kwargs or {}
     try:
-        env = gym.make(env_id, render_mode=render_mode, **(kwargs or {}))
+        env = gym.make(cfg.id, render_mode=render_mode, **kwargs)
     except DrivelabError:
         raise
     except (TypeError, ValueError, KeyError, AssertionError, gym.error.Error) as exc:
         message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise DrivelabError(f"env '{env_id}' could not be created with kwargs {kwargs or {}}: {message}") from None
-    if reward:
-        env = RewardShaping(env, reward)
-    if action_grid:
-        steering_bins, throttle_bins = parse_grid(action_grid)
-        env = DiscreteActionGrid(env, steering_bins, throttle_bins, max_steering=max_steering)
-    elif fixed_throttle is not None:
-        env = FixedThrottle(env, fixed_throttle)
-    if obs_filters:
-        env = apply_filters(env, obs_filters)
+        raise DrivelabError(f"env '{cfg.id}' could not be created with kwargs {kwargs}: {message}") from None
+    if cfg.reward:
+        task_shaping = _find_wrapper(env, RewardShaping)
+        if task_shaping is not None:
+            task_shaping.replace_terms(cfg.reward)
+        else:
+            env = RewardShaping(env, cfg.reward)
+    if cfg.action_grid:
+        steering_bins, throttle_bins = parse_grid(cfg.action_grid)
+        env = DiscreteActionGrid(env, steering_bins, throttle_bins, max_steering=cfg.max_steering)
+    elif cfg.fixed_throttle is not None:
+        env = FixedThrottle(env, cfg.fixed_throttle)
+    if cfg.obs_filters:
+        env = apply_filters(env, list(cfg.obs_filters))
     return env
 
 
-def _env_fn(cfg: EnvConfig, render_mode: str | None):
-    return functools.partial(make_env, cfg.id, dict(cfg.kwargs), cfg.action_grid, cfg.max_steering, render_mode,
-                             cfg.fixed_throttle, cfg.reward, list(cfg.obs_filters))
+def _find_wrapper(env: gym.Env, kind: type[gym.Wrapper]) -> gym.Wrapper | None:
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, kind):
+            return env
+        env = env.env
+    return None
 
 
 def env_spaces(cfg: EnvConfig) -> tuple[gym.Space, gym.Space]:
@@ -82,7 +83,7 @@ def env_spaces(cfg: EnvConfig) -> tuple[gym.Space, gym.Space]:
 
     Builds the env in this process without resetting it; for MetaDrive this starts no engine.
     """
-    env = _env_fn(cfg, None)()
+    env = make_env(cfg)
     try:
         return env.observation_space, env.action_space
     finally:
@@ -111,7 +112,7 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
         mode = "async" if needs_own_process(cfg.id) else "sync"
     if mode == "sync" and needs_own_process(cfg.id):
         raise DrivelabError(f"config field 'env.vectorization': '{cfg.id}' allows one instance per process; use 'async' or 'auto'")
-    fns = [_env_fn(cfg, render_mode) for _ in range(num_envs)]
+    fns = [functools.partial(make_env, copy.deepcopy(cfg), render_mode=render_mode) for _ in range(num_envs)]
     if mode == "sync":
         return SyncVectorEnv(fns, autoreset_mode=autoreset_mode)
     if mode == "async":

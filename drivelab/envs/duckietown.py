@@ -100,9 +100,9 @@ class DuckietownGym(gym.Env):
         self._sim.close()
 
 
-def DuckietownLaneFollow(render_mode: str | None = None, reward: dict | None = None, **simulator: Any) -> gym.Env:
+def DuckietownLaneFollow(render_mode: str | None = None, **simulator: Any) -> gym.Env:
     """``drivelab/DuckietownLaneFollow-v0``: small (60x80) camera images, [steering, throttle]
-    actions, notebook 004's lane reward."""
+    actions, notebook 004's lane reward (``env.reward`` replaces its terms)."""
     env: gym.Env = DuckietownGym(render_mode=render_mode, **simulator)
-    env = RewardShaping(env, reward or DUCKIETOWN_REWARD)
+    env = RewardShaping(env, DUCKIETOWN_REWARD)
     return DifferentialDrive(env)

@@ -43,9 +43,6 @@ from drivelab.errors import DrivelabError
 # drivelab's defaults on top of MetaDrive's: headless, quiet, and a step limit.
 DEFAULTS: dict[str, Any] = {"use_render": False, "horizon": 1000, "log_level": logging.ERROR}
 
-# Keys of the lean info dict that evaluation and tracking read at the end of an episode.
-EPISODE_INFO_KEYS = ("success", "crash", "out_of_road", "route_completion")
-
 
 def asset_dir() -> str:
     from metadrive.engine.asset_loader import AssetLoader

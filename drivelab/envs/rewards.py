@@ -129,6 +129,11 @@ class RewardShaping(gym.Wrapper):
         self._prev: dict | None = None
         self._sums = dict.fromkeys(self.config, 0.0)
 
+    def replace_terms(self, config: dict[str, Any]) -> None:
+        """Use ``config``'s terms instead (a task's default reward overridden by ``env.reward``)."""
+        self.config = validate_reward_config(config)
+        self._sums = dict.fromkeys(self.config, 0.0)
+
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
         self._prev = info

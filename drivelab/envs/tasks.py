@@ -8,8 +8,7 @@ import gymnasium as gym
 
 from drivelab.envs.metadrive import MetaDriveGym
 from drivelab.envs.rewards import RewardShaping
-from drivelab.envs.wrappers import CruiseControl, FixedThrottle
-from drivelab.errors import DrivelabError
+from drivelab.envs.wrappers import CruiseControl
 
 # Notebook 003's CTE reward, scaled for MetaDrive's 3.5 m lanes: the factor 1 - (|cte|/1.5)^2 is
 # 0 where the car's edge touches the lane line; -10 and the end of the episode on a collision, off
@@ -19,26 +18,17 @@ from drivelab.errors import DrivelabError
 LANE_FOLLOW_REWARD = {"cte": {"weight": 1.0, "scale": 300.0, "max_cte": 1.5, "crash": -10.0, "per": "progress"}}
 
 
-def lane_follow(render_mode: str | None = None, reward: dict[str, Any] | None = None,
-                fixed_throttle: float | None = None, target_speed: float | None = None,
-                **metadrive: Any) -> gym.Env:
-    """MetaDrive lane following: empty roads (no traffic), state observations, the CTE reward.
+def lane_follow(render_mode: str | None = None, target_speed: float | None = None, **metadrive: Any) -> gym.Env:
+    """MetaDrive lane following: empty roads (no traffic), state observations, the CTE reward
+    :data:`LANE_FOLLOW_REWARD` (``env.reward`` replaces its terms; ``env.fixed_throttle`` gives
+    steering-only control at a constant throttle, as notebook 003).
 
     Args:
-        reward: reward terms replacing :data:`LANE_FOLLOW_REWARD`.
-        fixed_throttle: steering-only 1-D actions at this throttle (notebook 003 used 0.3). On
-            MetaDrive this is a constant engine force: the car keeps speeding up.
         target_speed: steering-only 1-D actions, the throttle held by a speed controller at this
-            speed in m/s (:class:`CruiseControl`).
+            speed in m/s (:class:`CruiseControl`). On MetaDrive a fixed throttle is a constant
+            engine force: the car keeps speeding up.
         **metadrive: MetaDrive config overrides (num_scenarios, map, horizon, ...).
     """
     config = {"start_seed": 1000, "num_scenarios": 100, "traffic_density": 0.0, **metadrive}
-    env: gym.Env = MetaDriveGym(render_mode=render_mode, **config)
-    env = RewardShaping(env, reward or LANE_FOLLOW_REWARD)
-    if fixed_throttle is not None and target_speed is not None:
-        raise DrivelabError("lane_follow: give fixed_throttle or target_speed, not both")
-    if fixed_throttle is not None:
-        env = FixedThrottle(env, fixed_throttle)
-    elif target_speed is not None:
-        env = CruiseControl(env, target_speed)
-    return env
+    env: gym.Env = RewardShaping(MetaDriveGym(render_mode=render_mode, **config), LANE_FOLLOW_REWARD)
+    return CruiseControl(env, target_speed) if target_speed is not None else env

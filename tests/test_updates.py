@@ -1,0 +1,245 @@
+"""One update of each algorithm on a fixed tiny batch, pinned against a reference computation.
+
+Every ``update`` is a module-level function, so it can be called here without envs or a run.
+Optimisers are plain SGD, so the expected parameter change is exactly -lr * (gradient of the
+reference loss), computed independently with torch.distributions and autograd on a copy.
+"""
+
+import copy
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from torch.distributions import Categorical
+
+from drivelab.algos import a2c, ddpg, grpo, ppo, reinforce, sac, td3
+from drivelab.buffers import ReplayBatch
+from drivelab.nets import ActorCritic, OffPolicyAgent, Policy, make_target
+from drivelab.rollout import RolloutBatch
+
+OBS = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
+DISCRETE = gym.spaces.Discrete(2)
+BOX = gym.spaces.Box(-2.0, 2.0, (2,), np.float32)
+B = 6
+LR = 0.1
+
+
+def _obs(seed=0):
+    return torch.as_tensor(np.random.default_rng(seed).uniform(-1, 1, (B, 3)), dtype=torch.float32)
+
+
+def _params(module):
+    return {name: p.detach().clone() for name, p in module.named_parameters()}
+
+
+def _expected_after_sgd(module, loss_fn, lr=LR):
+    """Parameters of ``module`` after one SGD step on ``loss_fn(copy)``, computed on a copy."""
+    ref = copy.deepcopy(module)
+    loss = loss_fn(ref)
+    grads = torch.autograd.grad(loss, [p for p in ref.parameters()], allow_unused=True)
+    return {name: p.detach() - lr * (g if g is not None else 0.0)
+            for (name, p), g in zip(ref.named_parameters(), grads)}, loss.detach()
+
+
+def _assert_params(module, expected, atol=1e-6):
+    for name, p in module.named_parameters():
+        torch.testing.assert_close(p.detach(), expected[name], atol=atol, rtol=1e-5, msg=name)
+
+
+def test_reinforce_update_is_the_normalised_reward_to_go_policy_gradient():
+    torch.manual_seed(0)
+    policy = Policy(OBS, DISCRETE, [4])
+    batch = reinforce.EpisodeBatch(obs=_obs(), actions=torch.tensor([0, 1, 1, 0, 1, 0]),
+                                   returns=torch.tensor([3.0, 2.0, 1.0, 0.5, -1.0, 4.0]))
+    hp = reinforce.Params(advantage="normalize", ent_coef=0.1)
+    w = (batch.returns - batch.returns.mean()) / (batch.returns.std(unbiased=False) + 1e-8)
+
+    def reference(p):
+        dist = Categorical(logits=p.head(p.encoder(batch.obs)))
+        return -(dist.log_prob(batch.actions) * w).mean() - 0.1 * dist.entropy().mean()
+
+    expected, ref_loss = _expected_after_sgd(policy, reference)
+    out = reinforce.update(policy, torch.optim.SGD(policy.parameters(), lr=LR), batch, hp)
+    assert (out["loss/policy"] - 0.1 * out["loss/entropy"]).item() == pytest.approx(ref_loss.item(), rel=1e-5)
+    _assert_params(policy, expected)
+
+
+def _rollout_batch(agent, log_prob_offsets):
+    obs, actions = _obs(1), torch.tensor([0, 1, 0, 1, 1, 0])
+    with torch.no_grad():
+        log_probs = agent.distribution(obs).log_prob(actions) + torch.tensor(log_prob_offsets)
+        values = agent.value(obs) + 0.3
+    advantages = torch.tensor([1.0, -0.5, 2.0, 0.0, -1.5, 0.7])
+    return RolloutBatch(obs, actions, log_probs, values, advantages, returns=advantages + values)
+
+
+def test_a2c_update_is_one_actor_critic_gradient_step():
+    torch.manual_seed(0)
+    agent = ActorCritic(OBS, DISCRETE, [4])
+    batch = _rollout_batch(agent, [0.0] * B)
+    hp = a2c.Params(ent_coef=0.01, vf_coef=0.5, max_grad_norm=1e9)
+
+    def reference(a):
+        dist = a.distribution(batch.obs)
+        pg = -(dist.log_prob(batch.actions) * batch.advantages).mean()
+        v = 0.5 * (a.value(batch.obs) - batch.returns).pow(2).mean()
+        return pg + 0.5 * v - 0.01 * dist.entropy().mean()
+
+    expected, ref_loss = _expected_after_sgd(agent, reference)
+    out = a2c.update(agent, torch.optim.SGD(agent.parameters(), lr=LR), batch, hp)
+    total = out["loss/policy"] + 0.5 * out["loss/value"] - 0.01 * out["loss/entropy"]
+    assert total.item() == pytest.approx(ref_loss.item(), rel=1e-5)
+    # the rollout's values were stored as V(s) + 0.3: no clipping in A2C, L_V = 0.5 * mean((V(s) - R)^2)
+    assert out["loss/value"].item() == pytest.approx(0.5 * (batch.values - 0.3 - batch.returns).pow(2).mean().item(), rel=1e-5)
+    _assert_params(agent, expected)
+
+
+def test_ppo_update_clips_the_ratio_and_the_value_by_hand():
+    torch.manual_seed(0)
+    agent = ActorCritic(OBS, DISCRETE, [4])
+    # log pi_old = log pi_theta + offset, so rho = exp(-offset): 1.65, 0.61, 1, 1.11, 0.82, 1.35
+    offsets = [-0.5, 0.5, 0.0, -0.1, 0.2, -0.3]
+    batch = _rollout_batch(agent, offsets)
+    hp = ppo.Params(update_epochs=1, num_minibatches=1, clip_coef=0.2, ent_coef=0.01, vf_coef=0.5, max_grad_norm=1e9)
+
+    def reference(a):
+        dist = a.distribution(batch.obs)
+        ratio = (dist.log_prob(batch.actions) - batch.log_probs).exp()
+        adv = (batch.advantages - batch.advantages.mean()) / (batch.advantages.std() + 1e-8)
+        pg = -torch.min(ratio * adv, ratio.clamp(0.8, 1.2) * adv).mean()
+        v = a.value(batch.obs)
+        v_clipped = batch.values + (v - batch.values).clamp(-0.2, 0.2)
+        vl = 0.5 * torch.max((v - batch.returns) ** 2, (v_clipped - batch.returns) ** 2).mean()
+        return pg + 0.5 * vl - 0.01 * dist.entropy().mean()
+
+    expected, ref_loss = _expected_after_sgd(agent, reference)
+    out = ppo.update(agent, torch.optim.SGD(agent.parameters(), lr=LR), batch, hp)
+    total = out["loss/policy"] + 0.5 * out["loss/value"] - 0.01 * out["loss/entropy"]
+    assert total.item() == pytest.approx(ref_loss.item(), rel=1e-5)
+    # |rho - 1| > 0.2 for offsets -0.5, 0.5, -0.3 (rho 1.65, 0.61, 1.35): half the batch is clipped
+    assert out["loss/clip_fraction"].item() == pytest.approx(0.5)
+    rho = np.exp(-np.array(offsets))
+    assert out["loss/approx_kl"].item() == pytest.approx(np.mean((rho - 1) - np.log(rho)), rel=1e-5)
+    _assert_params(agent, expected)
+
+
+def test_grpo_update_is_the_clipped_ratio_plus_the_kl_penalty():
+    torch.manual_seed(0)
+    agent = ActorCritic(OBS, DISCRETE, [4], critic=False)
+    obs, actions = _obs(2), torch.tensor([1, 1, 0, 0, 1, 0])
+    with torch.no_grad():
+        old = agent.distribution(obs).log_prob(actions) + torch.tensor([0.4, -0.4, 0.0, 0.1, -0.25, 0.05])
+    batch = grpo.GroupBatch(obs, actions, old, advantages=torch.tensor([1.0, 1.0, -1.0, -1.0, 0.5, -0.5]))
+    hp = grpo.Params(update_epochs=1, num_minibatches=1, clip_coef=0.2, kl_coef=0.1, max_grad_norm=1e9)
+
+    def reference(a):
+        log_prob = a.distribution(obs).log_prob(actions)
+        ratio = (log_prob - old).exp()
+        pg = -torch.min(ratio * batch.advantages, ratio.clamp(0.8, 1.2) * batch.advantages).mean()
+        kl = ((ratio - 1) - (log_prob - old)).mean()   # k3 estimate of KL(pi_old || pi_theta)
+        return pg + 0.1 * kl
+
+    expected, ref_loss = _expected_after_sgd(agent, reference)
+    out = grpo.update(agent, torch.optim.SGD(agent.parameters(), lr=LR), batch, hp)
+    assert out["loss/policy"].item() == pytest.approx(ref_loss.item(), rel=1e-5)
+    _assert_params(agent, expected)
+
+
+def _replay_batch():
+    rng = np.random.default_rng(3)
+    t = lambda x: torch.as_tensor(x, dtype=torch.float32)  # noqa: E731
+    return ReplayBatch(obs=t(rng.uniform(-1, 1, (B, 3))), actions=t(rng.uniform(-1, 1, (B, 2))),
+                       rewards=t([1.0, 0.0, -1.0, 0.5, 2.0, 0.0]), next_obs=t(rng.uniform(-1, 1, (B, 3))),
+                       terminated=t([0, 0, 1, 0, 0, 1]))
+
+
+def _agent_and_target(stochastic, critics):
+    torch.manual_seed(0)
+    agent = OffPolicyAgent(OBS, BOX, [8], "relu", stochastic=stochastic, critics=critics)
+    target = make_target(agent)
+    with torch.no_grad():  # a target that trails the agent: the test tells them apart
+        for p in agent.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return agent, target
+
+
+def _sgd(agent, lrs=(0.05, 0.02)):
+    return {"critic": torch.optim.SGD(agent.critic.parameters(), lr=lrs[0]),
+            "actor": torch.optim.SGD(agent.actor.parameters(), lr=lrs[1])}
+
+
+def _polyak(before, agent, tau):
+    return {name: (1 - tau) * p + tau * dict(agent.named_parameters())[name].detach() for name, p in before.items()}
+
+
+def test_ddpg_update_target_critic_actor_and_polyak():
+    agent, target = _agent_and_target(stochastic=False, critics=1)
+    batch, hp = _replay_batch(), ddpg.Params(gamma=0.9, tau=0.1)
+    with torch.no_grad():  # y = r + gamma * (1 - terminated) * Q'(s', mu'(s'))
+        y = batch.rewards + 0.9 * (1 - batch.terminated) * target.critic(batch.next_obs, target.actor(batch.next_obs))[0]
+    critic_expected, ref_q = _expected_after_sgd(
+        agent.critic, lambda c: (c(batch.obs, batch.actions)[0] - y).pow(2).mean(), lr=0.05)
+    target_before, actor_before = _params(target), copy.deepcopy(agent.actor)
+    out = ddpg.update(agent, target, ddpg.Optimizers(**_sgd(agent)), batch, hp)
+    assert out["loss/critic"].item() == pytest.approx(ref_q.item(), rel=1e-5)
+    _assert_params(agent.critic, critic_expected)
+    # the actor ascends the *updated* critic: loss -mean Q(s, mu(s))
+    loss_pi = -agent.critic(batch.obs, actor_before(batch.obs)).mean()
+    assert out["loss/actor"].item() == pytest.approx(loss_pi.item(), rel=1e-5)
+    grads = torch.autograd.grad(loss_pi, list(actor_before.parameters()))
+    for (name, p), g in zip(actor_before.named_parameters(), grads):
+        torch.testing.assert_close(dict(agent.actor.named_parameters())[name].detach(), p.detach() - 0.02 * g)
+    _assert_params(target, _polyak(target_before, agent, 0.1))
+
+
+def test_td3_update_smooths_the_target_action_and_delays_the_actor():
+    agent, target = _agent_and_target(stochastic=False, critics=2)
+    batch, hp = _replay_batch(), td3.Params(gamma=0.9, tau=0.1, policy_noise=0.3, noise_clip=0.4)
+    torch.manual_seed(7)
+    with torch.no_grad():
+        noise = (torch.randn(B, 2) * 0.3).clamp(-0.4, 0.4)
+        next_action = (target.actor(batch.next_obs) + noise).clamp(-1, 1)
+        y = batch.rewards + 0.9 * (1 - batch.terminated) * target.critic(batch.next_obs, next_action).min(dim=0).values
+    assert noise.abs().max() <= 0.4 + 1e-7
+    critic_expected, ref_q = _expected_after_sgd(
+        agent.critic, lambda c: (c(batch.obs, batch.actions) - y).pow(2).mean(dim=1).sum(), lr=0.05)
+    actor_before, target_before = _params(agent.actor), _params(target)
+    opt = td3.Optimizers(**_sgd(agent))
+    torch.manual_seed(7)
+    out = td3.update(agent, target, opt, batch, hp, update_actor=False)       # a delayed step: critic only
+    assert out["loss/critic"].item() == pytest.approx(ref_q.item(), rel=1e-5) and "loss/actor" not in out
+    _assert_params(agent.critic, critic_expected)
+    _assert_params(agent.actor, actor_before)
+    _assert_params(target, target_before)
+    out = td3.update(agent, target, opt, batch, hp, update_actor=True)        # the policy_delay-th step
+    assert "loss/actor" in out
+    assert any(not torch.equal(p.detach(), actor_before[n]) for n, p in agent.actor.named_parameters())
+    _assert_params(target, _polyak(target_before, agent, 0.1))
+
+
+def test_sac_update_soft_target_actor_and_temperature():
+    agent, target = _agent_and_target(stochastic=True, critics=2)
+    batch, hp = _replay_batch(), sac.Params(gamma=0.9, tau=0.1, init_alpha=0.2)
+    log_alpha = torch.nn.Parameter(torch.tensor(0.2).log())
+    alpha, target_entropy = 0.2, -2.0
+    torch.manual_seed(11)
+    with torch.no_grad():  # y = r + gamma (1 - d) (min_e Q'_e(s', a') - alpha log pi(a'|s')), a' ~ pi(.|s')
+        next_action, next_log_prob = agent.actor(batch.next_obs)
+        next_q = target.critic(batch.next_obs, next_action).min(dim=0).values
+        y = batch.rewards + 0.9 * (1 - batch.terminated) * (next_q - alpha * next_log_prob)
+    critic_expected, ref_q = _expected_after_sgd(
+        agent.critic, lambda c: (c(batch.obs, batch.actions) - y).pow(2).mean(dim=1).sum(), lr=0.05)
+    opt = sac.Optimizers(**_sgd(agent), alpha=torch.optim.SGD([log_alpha], lr=0.5))
+    target_before = _params(target)
+    torch.manual_seed(11)
+    out = sac.update(agent, target, log_alpha, opt, batch, hp, target_entropy)
+    assert out["loss/critic"].item() == pytest.approx(ref_q.item(), rel=1e-5)
+    _assert_params(agent.critic, critic_expected)
+    # temperature: d/d log(alpha) of -mean(log alpha * (log pi + H)) is -(mean log pi + H), so one
+    # SGD step moves log(alpha) by lr * (mean log pi + H) = lr * (H - entropy): down while the
+    # policy's entropy is above its target
+    entropy = out["charts/entropy"].item()
+    assert log_alpha.item() == pytest.approx(np.log(0.2) + 0.5 * (target_entropy - entropy), rel=1e-5)
+    assert out["loss/alpha"].item() == pytest.approx(-np.log(0.2) * (target_entropy - entropy), rel=1e-5)
+    _assert_params(target, _polyak(target_before, agent, 0.1))
