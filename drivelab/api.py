@@ -11,6 +11,7 @@ the algorithms imports them.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -19,6 +20,7 @@ import torch
 from gymnasium.vector import AutoresetMode
 
 from drivelab.algos import ALGORITHMS, AlgoSpec
+from drivelab.baselines import baseline
 from drivelab.checkpoint import Checkpoint, load_checkpoint, restore
 from drivelab.config import EnvConfig, TrainConfig, parse_config
 from drivelab.envs import env_spaces, make_vector_env
@@ -101,10 +103,26 @@ def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None
         env_cfg.id, env_cfg.kwargs = env_id, {}
     env_cfg.kwargs.update(env_kwargs or {})
     env_cfg.num_envs = max(1, min(num_envs or env_cfg.num_envs, episodes))
-    policy = policy_from_checkpoint(ckpt, cfg, env_cfg)
-    envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED)
+    result = play(env_cfg, policy_from_checkpoint(ckpt, cfg, env_cfg), episodes, seed, deterministic)
+    return result, env_cfg, ckpt.path
+
+
+def evaluate_baseline(name: str, env_cfg: EnvConfig, episodes: int = 10, seed: int = 0) -> EvalResult:
+    """Evaluate a reference policy (``random``, ``lane-keeping``, ``metadrive-expert``; see
+    :mod:`drivelab.baselines`) with the protocol of :func:`evaluate_checkpoint`: same env config,
+    episode k reset with seed ``seed + k``, same metrics."""
+    if episodes < 1:
+        raise DrivelabError(f"--episodes must be >= 1, got {episodes}")
+    env_cfg = dataclasses.replace(env_cfg, num_envs=max(1, min(env_cfg.num_envs, episodes)))
+    wrapper, policy = baseline(name, env_spaces(env_cfg)[1], seed)
+    return play(env_cfg, policy, episodes, seed, wrapper=wrapper)
+
+
+def play(env_cfg: EnvConfig, policy, episodes: int, seed: int = 0, deterministic: bool = True,
+         wrapper=None) -> EvalResult:
+    """``episodes`` episodes of ``policy`` on a vector env built from ``env_cfg`` (then closed)."""
+    envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, wrapper=wrapper)
     try:
-        result = run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic)
+        return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic)
     finally:
         envs.close()
-    return result, env_cfg, ckpt.path

@@ -44,16 +44,17 @@ process, :class:`ObservationIsAction`, then just sends the observation back as t
 evaluation loop is the one trained policies use, unchanged::
 
     wrapper, policy = baseline("metadrive-expert", action_space)
-    env_fn = functools.partial(make_wrapped, functools.partial(gym.make, "MetaDrive-validation-v0"), wrapper)
-    envs = AsyncVectorEnv([env_fn] * 2, context="spawn", autoreset_mode=AutoresetMode.DISABLED)
+    envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, wrapper=wrapper)
     result = drivelab.evaluate.run_episodes(envs, policy, episodes=30)
+
+(:func:`drivelab.api.evaluate_baseline` does this; ``drivelab eval --policy metadrive-expert``.)
 """
 
 from __future__ import annotations
 
 import copy
 import difflib
-from typing import Any, Callable
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -64,7 +65,7 @@ from drivelab.errors import DrivelabError
 BASELINES = ("random", "lane-keeping", "metadrive-expert")
 
 __all__ = ["BASELINES", "baseline", "ExpertActionObservation", "LaneKeepingObservation", "ObservationIsAction",
-           "RandomPolicy", "make_wrapped"]
+           "RandomPolicy"]
 
 
 def _check_steering_throttle(space: gym.Space, who: str) -> None:
@@ -223,13 +224,6 @@ def baseline(name: str, action_space: gym.Space,
     close = difflib.get_close_matches(name, BASELINES, n=1)
     hint = f" (did you mean {close[0]}?)" if close else ""
     raise DrivelabError(f"unknown baseline '{name}'{hint}; choose from {', '.join(BASELINES)}")
-
-
-def make_wrapped(env_fn: Callable[[], gym.Env], wrapper: type[gym.Wrapper] | None) -> gym.Env:
-    """``wrapper(env_fn())``, or ``env_fn()`` when wrapper is None. Module-level so that
-    ``functools.partial(make_wrapped, env_fn, wrapper)`` can be pickled into spawned workers."""
-    env = env_fn()
-    return env if wrapper is None else wrapper(env)
 
 
 def _env_name(env: gym.Env) -> str:

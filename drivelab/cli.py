@@ -22,7 +22,9 @@ import yaml
 
 from drivelab import api
 from drivelab.algos import ALGORITHMS
+from drivelab.baselines import BASELINES
 from drivelab.checkpoint import checkpoint_step
+from drivelab.config import EnvConfig
 from drivelab.errors import DrivelabError
 
 # Fields that may change when a run is resumed; anything else would change the experiment.
@@ -80,8 +82,10 @@ def _train_parser(sub) -> None:
 
 
 def _eval_parser(sub) -> None:
-    p = sub.add_parser("eval", help="evaluate a checkpoint or a run's latest checkpoint")
-    p.add_argument("path", help="run directory or checkpoint directory")
+    p = sub.add_parser("eval", help="evaluate a checkpoint, a run's latest checkpoint, or a baseline policy")
+    p.add_argument("path", nargs="?", help="run directory or checkpoint directory (e.g. RUN/checkpoints/best)")
+    p.add_argument("--policy", choices=BASELINES,
+                   help="evaluate a reference policy instead of a checkpoint (with --env, default MetaDrive-validation-v0)")
     p.add_argument("--episodes", type=int, default=10)
     p.add_argument("--env", help="evaluate on another env id (the training env's kwargs are then dropped)")
     p.add_argument("--env-kwarg", action="append", default=[], metavar="KEY=VALUE", help="env keyword override (repeatable)")
@@ -157,8 +161,8 @@ def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
     return 0
 
 
-def format_eval(summary: dict, env_id: str, checkpoint: Path) -> str:
-    rows = [f"evaluation of {checkpoint} on {env_id}: {summary['episodes']} episodes",
+def format_eval(summary: dict, env_id: str, what: str) -> str:
+    rows = [f"evaluation of {what} on {env_id}: {summary['episodes']} episodes",
             f"  {'return':<18}{summary['return_mean']:10.2f} ± {summary['return_std']:.2f}",
             f"  {'episode length':<18}{summary['length_mean']:10.1f}"]
     labels = {"success_rate": "success rate", "crash_rate": "crash rate", "out_of_road_rate": "out-of-road rate",
@@ -171,13 +175,31 @@ def format_eval(summary: dict, env_id: str, checkpoint: Path) -> str:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    if args.policy is not None:
+        return _eval_baseline(args)
+    if args.path is None:
+        raise DrivelabError("drivelab eval needs a run or checkpoint directory, or --policy NAME for a baseline")
     result, env_cfg, ckpt = api.evaluate_checkpoint(args.path, args.episodes, args.env, _env_kwargs(args.env_kwarg), args.num_envs,
                                                 args.seed, deterministic=not args.stochastic)
     summary = result.summary()
     if args.json:
         print(json.dumps({**summary, "env": env_cfg.id, "checkpoint": str(ckpt), "step": checkpoint_step(ckpt)}))
     else:
-        print(format_eval(summary, env_cfg.id, ckpt))
+        print(format_eval(summary, env_cfg.id, f"{ckpt} (step {checkpoint_step(ckpt)})"))
+    return 0
+
+
+def _eval_baseline(args: argparse.Namespace) -> int:
+    if args.path is not None:
+        raise DrivelabError("give a run/checkpoint directory or --policy, not both")
+    env_cfg = EnvConfig(id=args.env or "MetaDrive-validation-v0", kwargs=_env_kwargs(args.env_kwarg),
+                        num_envs=args.num_envs or 2)
+    env_cfg.validate()
+    summary = api.evaluate_baseline(args.policy, env_cfg, args.episodes, args.seed).summary()
+    if args.json:
+        print(json.dumps({**summary, "env": env_cfg.id, "policy": args.policy}))
+    else:
+        print(format_eval(summary, env_cfg.id, f"the {args.policy} baseline"))
     return 0
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import difflib
 import functools
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import gymnasium as gym
@@ -35,7 +36,8 @@ def _check_id(env_id: str) -> None:
         raise DrivelabError(f"unknown env id '{env_id}'{hint}")
 
 
-def make_env(cfg: EnvConfig, *, render_mode: str | None = None) -> gym.Env:
+def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
+             wrapper: Callable[[gym.Env], gym.Env] | None = None) -> gym.Env:
     """Build one environment from a validated :class:`~drivelab.config.EnvConfig`, then drivelab's
     wrappers in this order: reward shaping (``cfg.reward``), action adapter (``cfg.action_grid``
     or ``cfg.fixed_throttle``), observation filters (``cfg.obs_filters``).
@@ -43,7 +45,8 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None) -> gym.Env:
     ``cfg.kwargs`` go to ``gym.make`` (for MetaDrive: any MetaDrive config key, e.g.
     ``{"num_scenarios": 10, "traffic_density": 0.2}``). A task that shapes its reward itself
     (lane following, Duckietown) has its terms replaced by ``cfg.reward``: one route per knob.
-    ``render_mode="rgb_array"`` is for videos.
+    ``render_mode="rgb_array"`` is for videos; ``wrapper`` goes on last (e.g. a baseline's, see
+    :mod:`drivelab.baselines`; a module-level class, so vector envs can pickle it).
     """
     _check_id(cfg.id)
     kwargs = cfg.kwargs or {}
@@ -67,7 +70,7 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None) -> gym.Env:
         env = FixedThrottle(env, cfg.fixed_throttle)
     if cfg.obs_filters:
         env = apply_filters(env, list(cfg.obs_filters))
-    return env
+    return wrapper(env) if wrapper is not None else env
 
 
 def _find_wrapper(env: gym.Env, kind: type[gym.Wrapper]) -> gym.Wrapper | None:
@@ -78,12 +81,12 @@ def _find_wrapper(env: gym.Env, kind: type[gym.Wrapper]) -> gym.Wrapper | None:
     return None
 
 
-def env_spaces(cfg: EnvConfig) -> tuple[gym.Space, gym.Space]:
+def env_spaces(cfg: EnvConfig, wrapper: Callable[[gym.Env], gym.Env] | None = None) -> tuple[gym.Space, gym.Space]:
     """(observation_space, action_space) of one env, after drivelab's wrappers.
 
     Builds the env in this process without resetting it; for MetaDrive this starts no engine.
     """
-    env = make_env(cfg)
+    env = make_env(cfg, wrapper=wrapper)
     try:
         return env.observation_space, env.action_space
     finally:
@@ -92,7 +95,7 @@ def env_spaces(cfg: EnvConfig) -> tuple[gym.Space, gym.Space]:
 
 def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
                     autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP,
-                    render_mode: str | None = None) -> VectorEnv:
+                    render_mode: str | None = None, wrapper: Callable[[gym.Env], gym.Env] | None = None) -> VectorEnv:
     """Build ``num_envs`` (default ``cfg.num_envs``) copies of the env as a Gymnasium vector env.
 
     ``cfg.vectorization`` picks the backend: ``"sync"`` steps the envs in this process (best for
@@ -112,7 +115,8 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
         mode = "async" if needs_own_process(cfg.id) else "sync"
     if mode == "sync" and needs_own_process(cfg.id):
         raise DrivelabError(f"config field 'env.vectorization': '{cfg.id}' allows one instance per process; use 'async' or 'auto'")
-    fns = [functools.partial(make_env, copy.deepcopy(cfg), render_mode=render_mode) for _ in range(num_envs)]
+    fns = [functools.partial(make_env, copy.deepcopy(cfg), render_mode=render_mode, wrapper=wrapper)
+           for _ in range(num_envs)]
     if mode == "sync":
         return SyncVectorEnv(fns, autoreset_mode=autoreset_mode)
     if mode == "async":

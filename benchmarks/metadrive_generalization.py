@@ -1,0 +1,128 @@
+"""Does the agent drive on MetaDrive scenarios it has never seen? Train on a training split, then
+evaluate the run's checkpoints on held-out validation scenarios and on training scenarios, beside
+MetaDrive's own PPO expert and a random policy measured with the same protocol. Not a test.
+
+    python benchmarks/metadrive_generalization.py --config configs/ppo_metadrive_drive.yaml --run-dir runs/drive
+    python benchmarks/metadrive_generalization.py --run-dir runs/drive --skip-train   # re-evaluate a finished run
+
+Training resumes from the run's last checkpoint if it was interrupted. Every checkpoint kept in
+``RUN/checkpoints`` whose step is a multiple of ``--every`` (and the last one) is evaluated
+deterministically on ``--heldout`` validation scenarios (MetaDrive-validation-v0, scenarios
+0..N-1) and ``--train-episodes`` training scenarios (the run's own env, seeds 0..M-1). Writes
+``RUN/generalization.json`` and ``RUN/generalization.png`` (success rate and route completion
+against env steps, train vs held-out, baselines as reference lines), unless ``--out`` says where.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+from drivelab.api import build_config, checkpoint_config, evaluate_baseline, play, policy_from_checkpoint, train
+from drivelab.checkpoint import checkpoint_step, list_checkpoints, load_checkpoint
+from drivelab.config import EnvConfig, read_yaml
+
+HELDOUT_ENV = "MetaDrive-validation-v0"
+
+
+def train_run(config: str | None, run_dir: Path, steps: int | None) -> float:
+    """Train (or resume) the run; returns the training wall time of this call in seconds."""
+    checkpoints = list_checkpoints(run_dir)
+    data = read_yaml(config) if config else read_yaml(run_dir / "config.yaml")
+    data = {**data, "run_dir": str(run_dir), **({"steps": steps} if steps else {})}
+    cfg = build_config(data)
+    if checkpoints and checkpoint_step(checkpoints[-1]) >= cfg.steps:
+        return 0.0
+    started = time.perf_counter()
+    train(cfg, resume=bool(checkpoints))
+    return time.perf_counter() - started
+
+
+def evaluate_run(run_dir: Path, every: int, heldout: int, train_episodes: int, num_envs: int) -> list[dict]:
+    paths = list_checkpoints(run_dir)
+    chosen = [p for p in paths if checkpoint_step(p) % every == 0 or p == paths[-1]]
+    curve = []
+    for path in chosen:
+        ckpt = load_checkpoint(path)
+        cfg = checkpoint_config(ckpt)
+        row = {"step": ckpt.step}
+        # Held-out: the validation split with the run's wrappers (action grid, filters, reward)
+        # but not its kwargs, which may redefine the scenario range.
+        for name, env_cfg, episodes in (
+                ("heldout", dataclasses.replace(cfg.env, id=HELDOUT_ENV, kwargs={}, num_envs=num_envs), heldout),
+                ("train", dataclasses.replace(cfg.env, num_envs=num_envs), train_episodes)):
+            if episodes:
+                policy = policy_from_checkpoint(ckpt, cfg, env_cfg)
+                row[name] = play(env_cfg, policy, episodes).summary()
+        print(json.dumps(row), flush=True)
+        curve.append(row)
+    return curve
+
+
+def plot(curve: list[dict], baselines: dict[str, dict], out: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    steps = [row["step"] for row in curve]
+    for ax, metric, label in ((axes[0], "success_rate", "success rate"), (axes[1], "route_completion", "route completion")):
+        for split, style in (("heldout", "o-"), ("train", "s--")):
+            values = [row[split][metric] for row in curve if split in row]
+            if values:
+                ax.plot([row["step"] for row in curve if split in row], values, style,
+                        label=f"{'held-out' if split == 'heldout' else 'training'} scenarios")
+        for (name, summary), color in zip(baselines.items(), ("tab:green", "tab:gray", "tab:purple")):
+            ax.axhline(summary[metric], color=color, linestyle=":", label=f"{name} (held-out)")
+        ax.set_xlabel("env steps")
+        ax.set_ylabel(label)
+        ax.set_ylim(-0.02, 1.02)
+        ax.set_xlim(0, max(steps) * 1.02 if steps else 1)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper left")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", help="training config (default: the run's config.yaml)")
+    parser.add_argument("--run-dir", required=True)
+    parser.add_argument("--steps", type=int, help="override the config's steps")
+    parser.add_argument("--skip-train", action="store_true", help="only evaluate the run's checkpoints")
+    parser.add_argument("--every", type=int, default=200_000, help="evaluate checkpoints at multiples of this step")
+    parser.add_argument("--heldout", type=int, default=100, help="validation scenarios per evaluation")
+    parser.add_argument("--train-episodes", type=int, default=50, help="training scenarios per evaluation")
+    parser.add_argument("--baselines", nargs="*", default=["metadrive-expert", "random"])
+    parser.add_argument("--num-envs", type=int, default=2, help="evaluation env processes")
+    parser.add_argument("--out", help="JSON path (the PNG goes beside it); default RUN/generalization.json")
+    args = parser.parse_args()
+    run_dir = Path(args.run_dir)
+    wall = 0.0 if args.skip_train else train_run(args.config, run_dir, args.steps)
+    started = time.perf_counter()
+    curve = evaluate_run(run_dir, args.every, args.heldout, args.train_episodes, args.num_envs)
+    heldout_env = EnvConfig(id=HELDOUT_ENV, num_envs=args.num_envs)
+    baselines = {name: evaluate_baseline(name, heldout_env, args.heldout).summary() for name in args.baselines}
+    metrics = [row for row in curve if "heldout" in row]
+    best = max(metrics, key=lambda row: (row["heldout"]["success_rate"], row["heldout"]["route_completion"]), default=None)
+    cfg = read_yaml(run_dir / "config.yaml")
+    result = {"benchmark": "metadrive-generalization", "run_dir": str(run_dir), "algo": cfg["algo"],
+              "train_env": cfg["env"]["id"], "heldout_env": HELDOUT_ENV, "heldout_episodes": args.heldout,
+              "train_episodes": args.train_episodes, "train_wall_s_this_call": wall,
+              "eval_wall_s": time.perf_counter() - started, "curve": curve, "baselines": baselines, "best": best}
+    out = Path(args.out) if args.out else run_dir / "generalization.json"
+    out.write_text(json.dumps(result, indent=1) + "\n")
+    plot(curve, baselines, out.with_suffix(".png"),
+         f"{cfg['algo']} trained on {cfg['env']['id']}: {args.heldout} held-out validation scenarios")
+    print(json.dumps({"best": best, "baselines": baselines}, indent=1))
+    print(f"wrote {out} and {out.with_suffix('.png')}")
+
+
+if __name__ == "__main__":
+    main()
