@@ -22,11 +22,9 @@ install: $(VENV)/.installed
 
 demo: install
 	rm -rf $(DEMO)
-	$(BIN)/drivelab train --config configs/reinforce_metadrive.yaml --run-dir $(DEMO)
-	@echo "== before training: the initial policy on the 10 training scenarios =="
-	$(BIN)/drivelab eval $(DEMO)/checkpoints/step_000000000000 --episodes 10
-	@echo "== after training =="
-	$(BIN)/drivelab eval $(DEMO) --episodes 10
+	$(BIN)/drivelab train --config configs/ppo_metadrive_demo.yaml --run-dir $(DEMO)
+	@echo "== before (step 0) and after training, beside MetaDrive's PPO expert and a random policy =="
+	$(BIN)/drivelab eval $(DEMO)/checkpoints/step_000000000000 $(DEMO) --policy metadrive-expert --policy random --episodes 10
 
 test: install
 	$(BIN)/python -m pytest -q --durations=8

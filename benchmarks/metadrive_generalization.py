@@ -5,8 +5,8 @@ MetaDrive's own PPO expert and a random policy measured with the same protocol. 
     python benchmarks/metadrive_generalization.py --config configs/ppo_metadrive_drive.yaml --run-dir runs/drive
     python benchmarks/metadrive_generalization.py --run-dir runs/drive --skip-train   # re-evaluate a finished run
 
-Training resumes from the run's last checkpoint if it was interrupted. Every checkpoint kept in
-``RUN/checkpoints`` whose step is a multiple of ``--every`` (and the last one) is evaluated
+Training resumes from the run's last checkpoint if it was interrupted. The first checkpoint kept
+in ``RUN/checkpoints`` at or after each multiple of ``--every`` (and the last one) is evaluated
 deterministically on ``--heldout`` validation scenarios (MetaDrive-validation-v0, scenarios
 0..N-1) and ``--train-episodes`` training scenarios (the run's own env, seeds 0..M-1). Writes
 ``RUN/generalization.json`` and ``RUN/generalization.png`` (success rate and route completion
@@ -43,7 +43,9 @@ def train_run(config: str | None, run_dir: Path, steps: int | None) -> float:
 
 def evaluate_run(run_dir: Path, every: int, heldout: int, train_episodes: int, num_envs: int) -> list[dict]:
     paths = list_checkpoints(run_dir)
-    chosen = [p for p in paths if checkpoint_step(p) % every == 0 or p == paths[-1]]
+    steps = [checkpoint_step(p) for p in paths]
+    # the first checkpoint at or after each multiple of `every` (iterations rarely end on one), and the last
+    chosen = sorted({next(p for p, s in zip(paths, steps) if s >= m) for m in range(0, steps[-1] + 1, every)} | {paths[-1]})
     curve = []
     for path in chosen:
         ckpt = load_checkpoint(path)

@@ -1,11 +1,28 @@
 """drivelab: reinforcement learning for driving simulators.
 
+    import drivelab
+    result = drivelab.train("ppo", "CartPole-v1", steps=50_000)
+    policy = drivelab.load(result.run_dir)
+    drivelab.evaluate(policy, episodes=10)
+
 Importing drivelab registers its Gymnasium ids (the MetaDrive ids the course notebooks use,
 ``MetaDrive-validation-v0`` and friends), so ``gym.make("MetaDrive-validation-v0")`` works.
 """
 
 from drivelab.envs.registration import register_envs
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 register_envs()
+
+_API = ("train", "load", "evaluate", "make_env", "build_config")
+
+
+def __getattr__(name: str):
+    """``drivelab.train``, ``drivelab.load``, ``drivelab.evaluate``, ``drivelab.make_env``
+    (:mod:`drivelab.api`), imported on first use so that ``import drivelab`` stays light."""
+    if name in _API:
+        from drivelab import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'drivelab' has no attribute {name!r}")

@@ -1,8 +1,11 @@
-"""drivelab from Python: build a config, train, load a trained policy, evaluate it.
+"""drivelab from Python: train, load a trained policy, act, evaluate. ``import drivelab`` gives
+``drivelab.train``, ``drivelab.load``, ``drivelab.evaluate`` and ``drivelab.make_env``::
 
-    from drivelab.api import build_config, train, load_policy, evaluate_checkpoint
-    run_dir = train(build_config({"algo": "ppo", "env": {"id": "CartPole-v1"}, "steps": 50_000}))
-    result, env_cfg, checkpoint = evaluate_checkpoint(run_dir, episodes=10)
+    import drivelab
+    result = drivelab.train("ppo", "CartPole-v1", steps=50_000, seed=0, ppo={"lr": 3e-4})
+    policy = drivelab.load(result.run_dir)              # a run, a checkpoint, or RUN/best
+    action = policy.act(obs)                            # one observation or a batch
+    drivelab.evaluate(policy, "CartPole-v1", episodes=10)   # the dict of `drivelab eval --json`
 
 The CLI calls these same functions. This module sits on top: it hands the algorithm registry
 (:data:`drivelab.algos.ALGORITHMS`) down to the config parser and the run, so that nothing below
@@ -11,21 +14,26 @@ the algorithms imports them.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import time
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any, NamedTuple
 
+import gymnasium as gym
+import numpy as np
 import torch
-from gymnasium.vector import AutoresetMode
+from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 from drivelab.algos import ALGORITHMS, AlgoSpec
 from drivelab.baselines import baseline
-from drivelab.checkpoint import Checkpoint, load_checkpoint, restore
-from drivelab.config import EnvConfig, TrainConfig, parse_config
+from drivelab.checkpoint import Checkpoint, checkpoint_step, load_checkpoint, restore
+from drivelab.config import EnvConfig, TrainConfig, parse_config, read_yaml, resolve_config_file, set_dotted
 from drivelab.envs import env_spaces, make_vector_env
 from drivelab.errors import DrivelabError
-from drivelab.evaluate import EvalResult, run_episodes
+from drivelab.evaluation import EvalResult, run_episodes
+from drivelab.export import DeployedPolicy, export_policy, metadata
 from drivelab.run import Run
 
 
@@ -39,10 +47,29 @@ def default_run_dir(cfg: TrainConfig) -> str:
     return str(Path("runs") / f"{cfg.algo}-{safe_env}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}")
 
 
-def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
-          algorithms: Mapping[str, AlgoSpec] = ALGORITHMS) -> Path:
-    """Train ``cfg.algo`` on ``cfg.env`` for ``cfg.steps`` env steps (continuing the latest
-    checkpoint in ``cfg.run_dir`` when ``resume``). Returns the run directory."""
+class TrainResult(NamedTuple):
+    run_dir: Path
+    metrics: dict[str, float]     # the last logged value of each metric (episode/*, loss/*, eval/*, perf/*)
+
+
+def train(algo: str | TrainConfig, env: str | Mapping[str, Any] | None = None, *, steps: int | None = None,
+          seed: int | None = None, num_envs: int | None = None, run_dir: str | Path | None = None,
+          config: str | Path | None = None, resume: bool = False, progress: bool = True,
+          algorithms: Mapping[str, AlgoSpec] = ALGORITHMS, **overrides: Any) -> TrainResult:
+    """Train an agent and return its run directory and final metrics.
+
+    Either a :class:`TrainConfig`, or an algorithm name with an env (an id, or the ``env``
+    section as a dict: ``{"id": "MetaDrive-10env-v0", "action_grid": "3x3"}``) and any config
+    field as a keyword: sections as dicts (``ppo={"lr": 1e-3}``, ``eval={"every": 10_000}``) or
+    top-level fields (``checkpoint_every=5000``). ``config`` is a YAML file (or the name of a
+    shipped config) that these override. ``resume`` continues ``run_dir``.
+    """
+    if isinstance(algo, TrainConfig):
+        cfg = algo
+    else:
+        if env is not None:
+            overrides["env"] = {"id": env} if isinstance(env, str) else env
+        cfg = _config_from_arguments(algo, steps, seed, num_envs, run_dir, config, overrides, algorithms)
     spec = algorithms[cfg.algo]
     if cfg.run_dir is None:
         cfg.run_dir = default_run_dir(cfg)
@@ -62,7 +89,30 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
         spec.train(cfg, run)
     finally:
         run.close()
-    return run.dir
+    return TrainResult(run.dir, last_metrics(run.dir))
+
+
+def _config_from_arguments(algo: str, steps: int | None, seed: int | None, num_envs: int | None, run_dir,
+                           config, overrides: dict[str, Any], algorithms: Mapping[str, AlgoSpec]) -> TrainConfig:
+    data = read_yaml(resolve_config_file(config)) if config else {}
+    data["algo"] = algo
+    for key, value in {"steps": steps, "seed": seed, "run_dir": None if run_dir is None else str(run_dir)}.items():
+        if value is not None:
+            set_dotted(data, key, value)
+    for key, value in overrides.items():
+        if isinstance(value, Mapping) and isinstance(data.get(key), Mapping):
+            data[key] = {**data[key], **value}
+        else:
+            data[key] = dict(value) if isinstance(value, Mapping) else value
+    if num_envs is not None:
+        set_dotted(data, "env.num_envs", num_envs)
+    return build_config(data, where="drivelab.train", algorithms=algorithms)
+
+
+def last_metrics(run_dir: str | Path) -> dict[str, float]:
+    """The last logged value of each metric in ``RUN/metrics.csv``."""
+    with open(Path(run_dir) / "metrics.csv", newline="") as f:
+        return {row["name"]: float(row["value"]) for row in csv.DictReader(f)}
 
 
 def checkpoint_config(ckpt: Checkpoint, algorithms: Mapping[str, AlgoSpec] = ALGORITHMS) -> TrainConfig:
@@ -126,3 +176,77 @@ def play(env_cfg: EnvConfig, policy, episodes: int, seed: int = 0, deterministic
         return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic)
     finally:
         envs.close()
+
+
+class TrainedPolicy:
+    """A trained policy outside training (``drivelab.load``): observations of the run's env (after
+    its observation filters) -> the simulator's action, with the run's observation normalisation
+    and action adapters applied (:class:`drivelab.export.DeployedPolicy`).
+
+    ``act`` takes one observation or a batch (numpy or torch) and returns numpy actions of the
+    same batch shape; ``env_config`` builds the env it acts in (``drivelab.make_env``): the run's
+    env with its filters and reward, without the action adapters the policy already applies.
+    """
+
+    def __init__(self, deployed: DeployedPolicy, cfg: TrainConfig, checkpoint: Path):
+        self.deployed, self.config, self.checkpoint = deployed.eval().requires_grad_(False), cfg, checkpoint
+        self.env_config = dataclasses.replace(cfg.env, action_grid=None, fixed_throttle=None)
+        self.observation_space, self.action_space = env_spaces(cfg.env)[0], env_spaces(self.env_config)[1]
+
+    @torch.no_grad()
+    def act(self, obs, deterministic: bool = True) -> np.ndarray:
+        x = torch.as_tensor(np.asarray(obs, dtype=self.observation_space.dtype))
+        single = tuple(x.shape) == tuple(self.observation_space.shape)
+        x = x[None] if single else x
+        if deterministic:
+            action = self.deployed(x)
+        else:
+            network = self.deployed.network
+            action = self.deployed.adapt(torch.as_tensor(network.to_env(network.act(x, deterministic=False))))
+        action = action.cpu().numpy()
+        return action[0] if single else action
+
+    def to_env(self, action: np.ndarray) -> np.ndarray:
+        """Identity: ``act`` already returns the simulator's action (the evaluation loop's protocol)."""
+        return action
+
+    def export(self, out: str | Path, fmt: str = "onnx") -> Path:
+        """Write the deterministic policy as ONNX or TorchScript, with ``policy.json``, into ``out``."""
+        meta = metadata(self.config, checkpoint_step(self.checkpoint), self.observation_space, self.action_space)
+        return export_policy(self.deployed, meta, self.observation_space, fmt, Path(out))
+
+
+def load(path: str | Path) -> TrainedPolicy:
+    """The trained policy of a run (its latest checkpoint), a checkpoint directory, or ``RUN/best``."""
+    ckpt = load_checkpoint(path)
+    cfg = checkpoint_config(ckpt)
+    return TrainedPolicy(DeployedPolicy(policy_from_checkpoint(ckpt, cfg, cfg.env), cfg.env), cfg, ckpt.path)
+
+
+def make_env(env: str | EnvConfig, **kwargs: Any) -> gym.Env:
+    """One env as drivelab builds it: an id with keyword overrides (``make_env("MetaDrive-10env-v0",
+    traffic_density=0.2)``), or an :class:`EnvConfig` (action grid, filters, reward, ...)."""
+    from drivelab.envs import make_env as build
+
+    env_cfg = env if isinstance(env, EnvConfig) else EnvConfig(id=env, kwargs=kwargs)
+    env_cfg.validate()
+    return build(env_cfg)
+
+
+def evaluate(policy: TrainedPolicy, env: str | EnvConfig | gym.Env | None = None, episodes: int = 10,
+             seed: int = 0, num_envs: int = 1, deterministic: bool = True) -> dict[str, float]:
+    """Deterministic episodes of ``policy`` (episode k with seed ``seed + k``); returns the dict
+    that ``drivelab eval --json`` prints. ``env``: None (the policy's own env), an env id (its
+    kwargs are dropped if it differs from the training env's, as in ``drivelab eval --env``), an
+    :class:`EnvConfig`, or an env instance."""
+    if isinstance(env, gym.Env):
+        envs = SyncVectorEnv([lambda: env], autoreset_mode=AutoresetMode.DISABLED)
+        return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic).summary()
+    if isinstance(env, EnvConfig):
+        env_cfg = env
+    elif env is None or env == policy.env_config.id:
+        env_cfg = policy.env_config
+    else:
+        env_cfg = dataclasses.replace(policy.env_config, id=env, kwargs={})
+    env_cfg = dataclasses.replace(env_cfg, num_envs=max(1, min(num_envs, episodes)))
+    return play(env_cfg, policy, episodes, seed, deterministic).summary()

@@ -45,7 +45,7 @@ evaluation loop is the one trained policies use, unchanged::
 
     wrapper, policy = baseline("metadrive-expert", action_space)
     envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, wrapper=wrapper)
-    result = drivelab.evaluate.run_episodes(envs, policy, episodes=30)
+    result = drivelab.evaluation.run_episodes(envs, policy, episodes=30)
 
 (:func:`drivelab.api.evaluate_baseline` does this; ``drivelab eval --policy metadrive-expert``.)
 """

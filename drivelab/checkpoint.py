@@ -25,6 +25,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 
+from drivelab import __version__
 from drivelab.errors import DrivelabError
 
 _STEP_DIR = re.compile(r"^step_(\d{12})$")
@@ -90,7 +91,7 @@ def save_checkpoint(run_dir: str | Path, step: int, *, modules: dict[str, nn.Mod
     for key, value in (tensors or {}).items():
         flat[key] = value.detach().cpu().contiguous()
     flat["rng/torch"] = torch.get_rng_state()
-    full_state = {"step": int(step), "optimizers": optim_meta, **(state or {})}
+    full_state = {"step": int(step), "drivelab_version": __version__, "optimizers": optim_meta, **(state or {})}
 
     final = root / (dirname or f"step_{step:012d}")
     tmp = root / f".tmp_{final.name}_{os.getpid()}"
@@ -121,10 +122,13 @@ def list_checkpoints(run_dir: str | Path) -> list[Path]:
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
-    """A checkpoint directory, or a run directory (-> its latest checkpoint)."""
+    """A checkpoint directory, a run directory (-> its latest checkpoint), or ``RUN/best`` (-> the
+    best evaluated checkpoint, ``RUN/checkpoints/best``)."""
     path = Path(path)
     if (path / "state.json").is_file() and (path / "tensors.safetensors").is_file():
         return path
+    if path.name == "best" and not path.exists() and (path.parent / "checkpoints" / "best").is_dir():
+        return path.parent / "checkpoints" / "best"
     if not path.exists():
         raise DrivelabError(f"checkpoint or run directory not found: {path}")
     found = list_checkpoints(path)
@@ -145,6 +149,10 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         state = json.loads((path / "state.json").read_text())
     except (OSError, ValueError) as exc:
         raise DrivelabError(f"checkpoint {path} is unreadable: {exc}") from None
+    written_by = str(state.get("drivelab_version", "0.1")) if isinstance(state, dict) else "?"
+    if written_by.split(".")[0] != __version__.split(".")[0]:
+        raise DrivelabError(f"checkpoint {path} was written by drivelab {written_by}; this is drivelab {__version__}, "
+                            "whose checkpoints differ: evaluate it with that version")
     return Checkpoint(path=path, tensors=tensors, state=state)
 
 

@@ -20,7 +20,7 @@ from typing import Any
 
 import yaml
 
-from drivelab import api
+from drivelab import __version__, api
 from drivelab.algos import ALGORITHMS
 from drivelab.baselines import BASELINES
 from drivelab.checkpoint import checkpoint_step
@@ -65,9 +65,11 @@ def parse_overrides(tokens: list[str]) -> dict[str, Any]:
     return overrides
 
 
-def _train_parser(sub) -> None:
-    p = sub.add_parser("train", help="train an agent", description="Train an agent. Any config field can be set with --section.field VALUE.")
-    p.add_argument("--config", help="YAML config file")
+def _train_parser(sub, epilog: str | None = None) -> None:
+    p = sub.add_parser("train", help="train an agent", epilog=epilog or "drivelab train --algo ALGO --help lists ALGO's hyperparameters",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="Train an agent. Any config field can be set with --section.field VALUE.")
+    p.add_argument("--config", help="YAML config file, or the name of a shipped config (drivelab configs)")
     p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest checkpoint")
     p.add_argument("--algo", help=f"algorithm: {', '.join(ALGORITHMS)}")
     p.add_argument("--env", help="Gymnasium env id, e.g. CartPole-v1 or MetaDrive-10env-v0")
@@ -82,10 +84,13 @@ def _train_parser(sub) -> None:
 
 
 def _eval_parser(sub) -> None:
-    p = sub.add_parser("eval", help="evaluate a checkpoint, a run's latest checkpoint, or a baseline policy")
-    p.add_argument("path", nargs="?", help="run directory or checkpoint directory (e.g. RUN/checkpoints/best)")
-    p.add_argument("--policy", choices=BASELINES,
-                   help="evaluate a reference policy instead of a checkpoint (with --env, default MetaDrive-validation-v0)")
+    p = sub.add_parser("eval", help="evaluate checkpoints, runs' latest checkpoints, or baseline policies",
+                       description="Evaluate deterministically; several paths and --policy values give one table, "
+                                   "all on the same env and seeds.")
+    p.add_argument("path", nargs="*", help="run directory or checkpoint directory (e.g. RUN/checkpoints/best)")
+    p.add_argument("--policy", action="append", default=[], choices=BASELINES,
+                   help="also evaluate a reference policy (repeatable); on --env, else the checkpoints' env, "
+                        "else MetaDrive-validation-v0")
     p.add_argument("--episodes", type=int, default=10)
     p.add_argument("--env", help="evaluate on another env id (the training env's kwargs are then dropped)")
     p.add_argument("--env-kwarg", action="append", default=[], metavar="KEY=VALUE", help="env keyword override (repeatable)")
@@ -95,12 +100,18 @@ def _eval_parser(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(train_epilog: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="drivelab", description="Reinforcement learning for driving simulators.")
+    parser.add_argument("--version", action="version", version=f"drivelab {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    _train_parser(sub)
+    _train_parser(sub, train_epilog)
     _eval_parser(sub)
     sub.add_parser("envs", help="list drivelab's MetaDrive env ids")
+    sub.add_parser("configs", help="list the shipped configs (drivelab train --config NAME)")
+    export = sub.add_parser("export", help="export a trained policy to ONNX or TorchScript (runs without drivelab)")
+    export.add_argument("path", help="run directory, checkpoint directory, or RUN/best")
+    export.add_argument("--format", default="onnx", choices=("onnx", "torchscript"))
+    export.add_argument("--out", required=True, help="output directory (policy.onnx or policy.pt, and policy.json)")
     _reward_parser(sub)
     return parser
 
@@ -126,7 +137,7 @@ def _reward_parser(sub) -> None:
 
 
 def _train_data(args: argparse.Namespace, extra: dict[str, Any]) -> tuple[dict, bool]:
-    from drivelab.config import read_yaml, set_dotted
+    from drivelab.config import read_yaml, resolve_config_file, set_dotted
 
     flags = {
         "algo": args.algo, "env.id": args.env, "steps": args.steps, "seed": args.seed, "run_dir": args.run_dir,
@@ -146,7 +157,7 @@ def _train_data(args: argparse.Namespace, extra: dict[str, Any]) -> tuple[dict, 
                 raise DrivelabError(f"--resume keeps the run's config; '{key}' cannot change (allowed: {', '.join(RESUMABLE_FIELDS)})")
         data["run_dir"] = args.resume
     else:
-        data = read_yaml(args.config) if args.config else {}
+        data = read_yaml(resolve_config_file(args.config)) if args.config else {}
     for key, value in overrides.items():
         set_dotted(data, key, value)
     return data, bool(args.resume)
@@ -155,7 +166,10 @@ def _train_data(args: argparse.Namespace, extra: dict[str, Any]) -> tuple[dict, 
 def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
     data, resume = _train_data(args, extra)
     cfg = api.build_config(data)
-    run_dir = api.train(cfg, resume=resume, progress=not args.no_progress)
+    run_dir, metrics = api.train(cfg, resume=resume, progress=not args.no_progress)
+    shown = [(k, v) for k, v in metrics.items() if k.startswith(("episode/", "eval/")) and "reward/" not in k]
+    if shown:
+        print("last logged: " + ", ".join(f"{k} {v:.3g}" for k, v in shown))
     print(f"run saved in {run_dir} (config.yaml, metrics.csv, tb/, checkpoints/)")
     print(f"  evaluate: drivelab eval {run_dir} --episodes 10    watch: tensorboard --logdir {run_dir}/tb")
     return 0
@@ -175,32 +189,51 @@ def format_eval(summary: dict, env_id: str, what: str) -> str:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    if args.policy is not None:
-        return _eval_baseline(args)
-    if args.path is None:
+    if not args.path and not args.policy:
         raise DrivelabError("drivelab eval needs a run or checkpoint directory, or --policy NAME for a baseline")
-    result, env_cfg, ckpt = api.evaluate_checkpoint(args.path, args.episodes, args.env, _env_kwargs(args.env_kwarg), args.num_envs,
-                                                args.seed, deterministic=not args.stochastic)
-    summary = result.summary()
+    kwargs = _env_kwargs(args.env_kwarg)
+    rows: list[dict[str, Any]] = []
+    env_cfg = None
+    for path in args.path:
+        result, env_cfg, ckpt = api.evaluate_checkpoint(path, args.episodes, args.env, kwargs, args.num_envs,
+                                                        args.seed, deterministic=not args.stochastic)
+        rows.append({**result.summary(), "env": env_cfg.id, "checkpoint": str(ckpt), "step": checkpoint_step(ckpt)})
+    if args.policy:
+        # The baselines play the env the checkpoints were evaluated on (its id and kwargs, without
+        # a checkpoint's action or observation adapters), or --env.
+        base = EnvConfig(id=args.env or "MetaDrive-validation-v0", kwargs=kwargs) if env_cfg is None else \
+            EnvConfig(id=env_cfg.id, kwargs=dict(env_cfg.kwargs))
+        base.num_envs = args.num_envs or 2
+        base.validate()
+        for name in args.policy:
+            rows.append({**api.evaluate_baseline(name, base, args.episodes, args.seed).summary(), "env": base.id,
+                         "policy": name})
     if args.json:
-        print(json.dumps({**summary, "env": env_cfg.id, "checkpoint": str(ckpt), "step": checkpoint_step(ckpt)}))
+        print(json.dumps(rows[0] if len(rows) == 1 else rows))
+    elif len(rows) == 1:
+        row = rows[0]
+        what = f"{row['checkpoint']} (step {row['step']})" if "checkpoint" in row else f"the {row['policy']} baseline"
+        print(format_eval(row, row["env"], what))
     else:
-        print(format_eval(summary, env_cfg.id, f"{ckpt} (step {checkpoint_step(ckpt)})"))
+        print(format_table(rows, args.episodes, args.seed))
     return 0
 
 
-def _eval_baseline(args: argparse.Namespace) -> int:
-    if args.path is not None:
-        raise DrivelabError("give a run/checkpoint directory or --policy, not both")
-    env_cfg = EnvConfig(id=args.env or "MetaDrive-validation-v0", kwargs=_env_kwargs(args.env_kwarg),
-                        num_envs=args.num_envs or 2)
-    env_cfg.validate()
-    summary = api.evaluate_baseline(args.policy, env_cfg, args.episodes, args.seed).summary()
-    if args.json:
-        print(json.dumps({**summary, "env": env_cfg.id, "policy": args.policy}))
-    else:
-        print(format_eval(summary, env_cfg.id, f"the {args.policy} baseline"))
-    return 0
+def format_table(rows: list[dict[str, Any]], episodes: int, seed: int) -> str:
+    """One line per evaluated policy: return and the driving metrics the env reports."""
+    columns = [(key, label) for key, label in (("success_rate", "success"), ("crash_rate", "crash"),
+                                               ("out_of_road_rate", "off road"), ("route_completion", "route"))
+               if any(key in row for row in rows)]
+    names = [row.get("policy") or f"{row['checkpoint']} (step {row['step']})" for row in rows]
+    width = max(len(n) for n in names) + 2
+    envs = sorted({row["env"] for row in rows})
+    lines = [f"{episodes} episodes each on {', '.join(envs)} (episode k: seed {seed}+k), deterministic",
+             f"{'policy':<{width}}{'return':>18}" + "".join(f"{label:>10}" for _, label in columns)]
+    for name, row in zip(names, rows):
+        ret = f"{row['return_mean']:.1f} ± {row['return_std']:.1f}"
+        lines.append(f"{name:<{width}}{ret:>18}" + "".join(
+            f"{100 * row[key]:9.1f}%" if key in row else f"{'-':>10}" for key, _ in columns))
+    return "\n".join(lines)
 
 
 def _env_kwargs(items: list[str]) -> dict[str, Any]:
@@ -236,6 +269,23 @@ def cmd_reward(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    path = api.load(args.path).export(args.out, args.format)
+    print(f"wrote {path} and {Path(args.out) / 'policy.json'}")
+    return 0
+
+
+def cmd_configs() -> int:
+    from drivelab.config import read_yaml, shipped_configs
+
+    for name, path in shipped_configs().items():
+        data = read_yaml(path)
+        env = data.get("env", {}).get("id", "") if isinstance(data.get("env"), dict) else ""
+        print(f"{name:<28}{data.get('algo', '?'):<10}{env:<34}{data.get('steps', '')}")
+    print("(drivelab train --config NAME; the files are in drivelab/configs/)")
+    return 0
+
+
 def cmd_envs() -> int:
     from drivelab.envs.registration import metadrive_ids
 
@@ -246,8 +296,25 @@ def cmd_envs() -> int:
     return 0
 
 
+def algo_help(name: str) -> str:
+    """The hyperparameters of one algorithm: field, type, default, meaning."""
+    from drivelab.config import field_docs
+
+    spec = ALGORITHMS[name]
+    lines = [f"{name}: {spec.summary}", f"hyperparameters (--{name}.FIELD VALUE, or the '{name}:' section of a config):"]
+    for field, kind, default, meaning in field_docs(spec.params):
+        meaning = meaning.split(". ")[0].split(" (")[0] if len(meaning) > 80 else meaning
+        lines.append(f"  {field:<20} {kind:<14} {default!s:<12} {meaning}")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> None:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    algo = None
+    if argv[:1] == ["train"] and ("-h" in argv or "--help" in argv):  # --algo X --help: its hyperparameters
+        algo = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--algo"), None) or \
+            next((a.split("=", 1)[1] for a in argv if a.startswith("--algo=")), None)
+    parser = build_parser(train_epilog=algo_help(algo) if algo in ALGORITHMS else None)
     args, unknown = parser.parse_known_args(argv)
     run_dir = getattr(args, "resume", None) or getattr(args, "run_dir", None)
     try:
@@ -256,7 +323,8 @@ def main(argv: list[str] | None = None) -> None:
         else:
             if unknown:
                 parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-            code = {"eval": cmd_eval, "reward": cmd_reward}.get(args.command, lambda a: cmd_envs())(args)
+            code = {"eval": cmd_eval, "reward": cmd_reward, "export": cmd_export, "configs": lambda a: cmd_configs()}.get(
+                args.command, lambda a: cmd_envs())(args)
     except DrivelabError as exc:
         print(f"drivelab: error: {exc}", file=sys.stderr)
         sys.exit(2)

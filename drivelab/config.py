@@ -129,13 +129,55 @@ def _from_dict(cls: type, data: dict, where: str) -> Any:
         return dacite.from_dict(cls, data, config=_DACITE)
     except dacite.UnexpectedDataError as exc:
         names = ", ".join(sorted(exc.keys))
-        raise DrivelabError(f"{where}: unknown field(s) {names}") from None
+        close = difflib.get_close_matches(sorted(exc.keys)[0], _field_names(cls), n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise DrivelabError(f"{where}: unknown field(s) {names}{hint}") from None
     except dacite.WrongTypeError as exc:
         raise DrivelabError(
             f"{where}: field '{exc.field_path}' expects {_type_name(exc.field_type)}, got {exc.value!r}"
         ) from None
     except dacite.DaciteError as exc:
         raise DrivelabError(f"{where}: {exc}") from None
+
+
+def _field_names(cls: type) -> list[str]:
+    """The field names of a config dataclass and of the dataclasses nested in it."""
+    names = []
+    for f in dataclasses.fields(cls):
+        names.append(f.name)
+        if isinstance(f.default_factory, type) and dataclasses.is_dataclass(f.default_factory):
+            names += _field_names(f.default_factory)
+    return names
+
+
+def field_docs(cls: type) -> list[tuple[str, str, Any, str]]:
+    """(name, type, default, meaning) of each field of a hyperparameter dataclass, the meaning
+    taken from the comment beside or above the field in its source (base classes included)."""
+    import inspect
+    import re
+
+    comments: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        above: list[str] = []
+        for line in inspect.getsource(klass).splitlines():
+            stripped = line.strip()
+            match = re.match(r"(\w+)\s*:\s*[^=]+(?:=.*?)?(?:#\s*(.*))?$", stripped)
+            if stripped.startswith("#"):
+                above.append(stripped.lstrip("# "))
+            elif match and not stripped.startswith(("def ", "class ", "return")):
+                text = match.group(2) or " ".join(above)
+                if text or match.group(1) not in comments:
+                    comments[match.group(1)] = text
+                above = []
+            else:
+                above = []
+    rows = []
+    for f in dataclasses.fields(cls):
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        rows.append((f.name, _type_name(f.type) if not isinstance(f.type, str) else f.type, default, comments.get(f.name, "")))
+    return rows
 
 
 def _type_name(tp: Any) -> str:
@@ -154,6 +196,28 @@ def set_dotted(data: dict, dotted: str, value: Any) -> None:
             raise DrivelabError(f"config field '{dotted}': '{key}' is not a section")
         node = child
     node[keys[-1]] = value
+
+
+SHIPPED_CONFIGS = Path(__file__).resolve().parent / "configs"
+
+
+def shipped_configs() -> dict[str, Path]:
+    """The ready-made configs installed with drivelab (``drivelab/configs``, also ``configs/`` in
+    the repository), by name: ``ppo_metadrive_drive`` -> its YAML file."""
+    return {p.stem: p for p in sorted(SHIPPED_CONFIGS.glob("*.yaml"))}
+
+
+def resolve_config_file(name: str | Path) -> Path:
+    """A config file path, or the name of a shipped config (``ppo_lunarlander``)."""
+    path = Path(name)
+    if path.is_file():
+        return path
+    shipped = shipped_configs()
+    if str(name) in shipped or path.stem in shipped and path.suffix in ("", ".yaml") and len(path.parts) == 1:
+        return shipped[path.stem]
+    close = difflib.get_close_matches(path.stem, list(shipped), n=1)
+    hint = f" (did you mean the shipped config '{close[0]}'?)" if close else "; `drivelab configs` lists the shipped ones"
+    raise DrivelabError(f"config file not found: {name}{hint}")
 
 
 def read_yaml(path: str | Path) -> dict:

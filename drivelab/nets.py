@@ -37,8 +37,8 @@ ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU, "silu": nn.SiLU}
 class PolicyNetParams:
     """Network hyperparameters of the policy-gradient family (REINFORCE, A2C, PPO, GRPO); each
     algorithm's ``Params`` extends it."""
-    hidden: list[int] = field(default_factory=lambda: [64, 64])
-    activation: str = "tanh"
+    hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden layer widths
+    activation: str = "tanh"          # tanh | relu | elu | silu
     log_std_init: float = 0.0     # initial log std of the Gaussian policy (continuous actions)
 
 
@@ -162,9 +162,17 @@ class Policy(nn.Module):
 
     def to_env(self, action: torch.Tensor) -> np.ndarray:
         """Actions as the env expects them: ints for Discrete, clipped floats for Box."""
-        if self.discrete:
-            return action.cpu().numpy()
-        return torch.maximum(torch.minimum(action, self.high), self.low).cpu().numpy()
+        return self.env_action(action).cpu().numpy()
+
+    def env_action(self, action: torch.Tensor) -> torch.Tensor:
+        """:meth:`to_env` as a tensor op (traceable for export): clip Box actions to the bounds."""
+        return action if self.discrete else torch.maximum(torch.minimum(action, self.high), self.low)
+
+    def deterministic_action(self, obs: torch.Tensor) -> torch.Tensor:
+        """The env action of the mode of pi(.|obs), without a distribution object (exportable):
+        (B,) int64 for Discrete, (B, A) for Box."""
+        out = self.head(self.encoder(obs))
+        return out.argmax(-1) if self.discrete else self.env_action(out)
 
 
 class ActorCritic(nn.Module):
@@ -203,6 +211,9 @@ class ActorCritic(nn.Module):
 
     def to_env(self, action: torch.Tensor) -> np.ndarray:
         return self.actor.to_env(action)
+
+    def deterministic_action(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.actor.deterministic_action(self.prepare(obs))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -273,6 +284,10 @@ class SquashedGaussianActor(nn.Module):
         self.trunk = mlp(feature_dim, hidden, act)
         self.mean = nn.Linear(hidden[-1], act_dim)
         self.log_std = nn.Linear(hidden[-1], act_dim)
+
+    def mean_action(self, features: torch.Tensor) -> torch.Tensor:
+        """tanh(mean): the deterministic action, (B, A) in [-1, 1]."""
+        return torch.tanh(self.mean(self.trunk(features)))
 
     def forward(self, features: torch.Tensor, deterministic: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Returns (action (B, A) in [-1, 1], log pi(action|s) (B,))."""
@@ -345,6 +360,12 @@ class OffPolicyAgent(nn.Module):
 
     def to_env(self, action: torch.Tensor) -> np.ndarray:
         return (action * self.action_scale + self.action_bias).cpu().numpy()
+
+    def deterministic_action(self, obs: torch.Tensor) -> torch.Tensor:
+        """(B, A) env action of the deterministic policy: mu(s), or tanh(mean) for SAC."""
+        features = self.features(obs)
+        action = self.actor.mean_action(features) if self.stochastic else self.actor(features)
+        return action * self.action_scale + self.action_bias
 
 
 def polyak_update(target: nn.Module, source: nn.Module, tau: float) -> None:

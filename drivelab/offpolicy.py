@@ -28,16 +28,16 @@ from drivelab.run import Run
 @dataclass
 class OffPolicyParams:
     """Hyperparameters common to DDPG, TD3 and SAC (each adds its own)."""
-    buffer_size: int = 1_000_000
-    batch_size: int = 256
+    buffer_size: int = 1_000_000      # replay buffer capacity (transitions)
+    batch_size: int = 256             # transitions per gradient step
     learning_starts: int = 5_000      # random-action heat-up steps before any update
     utd: float = 1.0                  # update-to-data ratio: gradient steps per env step
-    gamma: float = 0.99
+    gamma: float = 0.99               # discount factor
     tau: float = 0.005                # Polyak coefficient of the target networks
-    actor_lr: float = 3e-4
-    critic_lr: float = 3e-4
-    hidden: list[int] = field(default_factory=lambda: [256, 256])
-    activation: str = "relu"
+    actor_lr: float = 3e-4            # actor learning rate (Adam)
+    critic_lr: float = 3e-4           # critic (and image encoder) learning rate (Adam)
+    hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer widths
+    activation: str = "relu"          # tanh | relu | elu | silu
     compile: bool = False             # torch.compile the critic and actor forward passes
 
     def validate(self) -> None:

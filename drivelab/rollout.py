@@ -20,7 +20,7 @@ from typing import NamedTuple
 import gymnasium as gym
 import numpy as np
 import torch
-from gymnasium.vector import AutoresetMode
+from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 
 from drivelab.config import EnvConfig
 from drivelab.envs import make_vector_env
@@ -34,15 +34,15 @@ from drivelab.run import Run
 @dataclass
 class ActorCriticParams(PolicyNetParams):
     """Hyperparameters that A2C and PPO share (each file sets its own defaults where they differ)."""
-    lr: float = 3e-4
+    lr: float = 3e-4                  # learning rate (Adam)
     anneal_lr: bool = True        # linear decay to 0 over the run
     num_steps: int = 128          # rollout length T per env
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
+    gamma: float = 0.99               # discount factor
+    gae_lambda: float = 0.95          # GAE lambda (1: Monte-Carlo returns, 0: TD(0))
     norm_adv: bool = True         # standardise advantages (per minibatch)
-    ent_coef: float = 0.0
-    vf_coef: float = 0.5
-    max_grad_norm: float = 0.5
+    ent_coef: float = 0.0             # weight of the entropy bonus
+    vf_coef: float = 0.5              # weight of the value loss
+    max_grad_norm: float = 0.5        # clip the global gradient norm to this
     normalize_obs: bool = False   # running observation normalisation (saved with the weights)
     normalize_reward: bool = False  # divide rewards by the running std of the discounted return
 
@@ -114,6 +114,7 @@ class RolloutCollector:
         self.obs, _ = self.envs.reset(seed=run.reset_seeds(np.ones(n, bool)))
         self.reward_rms = RunningMeanStd(()) if scale_rewards else None
         self.discounted_return = np.zeros(n)
+        self._pending: np.ndarray | None = None      # actions of a sync vector env, sent at _receive
 
     def modules(self) -> dict[str, torch.nn.Module]:
         """What a checkpoint must keep of the collector (the reward-scaling statistics)."""
@@ -128,13 +129,15 @@ class RolloutCollector:
             obs = torch.as_tensor(self.obs, device=device)
             dist = agent.distribution(obs)
             action = dist.sample()
+            # Subprocess envs simulate while this process stores the step and computes V(s_t):
+            # only the action has to be known before the envs can move.
+            self._send(agent.to_env(action))
             buf.obs[t] = obs
             buf.actions[t] = action
             buf.log_probs[t] = dist.log_prob(action)
             buf.values[t] = agent.value(obs)
-
             with self.run.timing.env:
-                self.obs, reward, terminated, truncated, info = self.envs.step(agent.to_env(action))
+                self.obs, reward, terminated, truncated, info = self._receive()
             done = terminated | truncated
             self.run.episodes.step(reward, done, info)
             buf.rewards[t] = reward
@@ -152,6 +155,17 @@ class RolloutCollector:
         last_value = agent.value(torch.as_tensor(self.obs, device=device)).cpu().numpy()
         buf.next_values[-1] = np.where(buf.dones[-1], buf.next_values[-1], last_value)
         return buf.batch(self.gamma, self.gae_lambda)
+
+    def _send(self, actions: np.ndarray) -> None:
+        if isinstance(self.envs, AsyncVectorEnv):
+            self.envs.step_async(actions)
+        else:
+            self._pending = actions
+
+    def _receive(self) -> tuple:
+        if isinstance(self.envs, AsyncVectorEnv):
+            return self.envs.step_wait()
+        return self.envs.step(self._pending)
 
     def _scale_rewards(self, buf: RolloutBuffer) -> None:
         """Divide the rollout's rewards by the running std of the discounted return.

@@ -48,7 +48,7 @@ from drivelab.checkpoint import Checkpoint, restore, save_checkpoint
 from drivelab.config import EnvConfig, TrainConfig, config_to_dict, save_config
 from drivelab.envs import make_vector_env
 from drivelab.episodes import EpisodeTracker
-from drivelab.evaluate import run_episodes
+from drivelab.evaluation import run_episodes
 from drivelab.track import Tracker
 
 # (tensors, JSON-able state) that a trainer saves beside its networks, e.g. a replay buffer.
@@ -106,13 +106,14 @@ class Run:
         self.timing = Timing()
         self._resume_from = resume_from
         self._last_checkpoint_step = -1
-        self._best: float | None = None
+        self._best: list[float] | None = None   # (best_metric, return) of checkpoints/best
         if resume_from is not None:
             self.step = resume_from.step
             self.iteration = int(resume_from.state.get("iteration", 0))
             self.rng.bit_generator.state = resume_from.state["numpy_rng"]
             self._last_checkpoint_step = self.step
-            self._best = resume_from.state.get("best")
+            best = resume_from.state.get("best")
+            self._best = [float(best), -math.inf] if isinstance(best, (int, float)) else best
             if "episodes" in resume_from.state:
                 self.episodes.load_state(resume_from.state["episodes"])
         self._next_log = self._after(self.step, cfg.log_every)
@@ -233,7 +234,8 @@ class Run:
                                device=self.device).summary()
         self._policy.train()
         self.tracker.log(self.step, {f"eval/{k}": v for k, v in summary.items() if k != "episodes"})
-        score = summary.get(spec.best_metric)
+        # Ties (frequent for rates over few episodes) go to the higher return.
+        score = [summary[spec.best_metric], summary["return_mean"]] if spec.best_metric in summary else None
         if score is not None and (self._best is None or score > self._best):
             self._best = score
             best = self._save(name="best")

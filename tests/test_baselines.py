@@ -131,3 +131,18 @@ def test_observation_is_action_passes_actions_through_clipped():
     assert action.dtype == torch.float32 and action.shape == (2, 2)
     np.testing.assert_allclose(policy.to_env(action), [[0.3, -0.2], [1.0, -1.0]], rtol=1e-6)
     assert policy.to_env(action).dtype == np.float32
+
+
+def test_cli_evaluates_the_expert_with_the_checkpoint_protocol(run_cli):
+    out = run_cli("eval", "--policy", "metadrive-expert", "--env", "MetaDrive-validation-v0", "--episodes", "2",
+                  "--env-kwarg", f"horizon={HORIZON}", "--json")
+    assert out.returncode == 0, out.stderr
+    import json
+
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["episodes"] == 2 and result["policy"] == "metadrive-expert"
+    for key in ("return_mean", "success_rate", "crash_rate", "out_of_road_rate", "route_completion"):
+        assert key in result
+    assert result["route_completion"] > 0.05 and result["return_mean"] > 0
+    missing = run_cli("eval", "no/such/run", "--policy", "random")
+    assert missing.returncode == 2 and "no/such/run" in missing.stderr and "Traceback" not in missing.stderr

@@ -284,7 +284,7 @@ def test_ppo_learns_lane_following_better_than_random(tmp_path):
     from drivelab.api import build_config, evaluate_checkpoint, train
     from drivelab.config import read_yaml
     from drivelab.envs import make_vector_env
-    from drivelab.evaluate import run_episodes
+    from drivelab.evaluation import run_episodes
 
     cfg = build_config({**read_yaml("configs/ppo_lanefollow.yaml"), "steps": 30000, "seed": 0, "run_dir": str(tmp_path / "lf")})
     train(cfg, progress=False)

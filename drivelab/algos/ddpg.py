@@ -26,7 +26,7 @@ from drivelab.run import Run
 @dataclass
 class Params(NoisyExplorationParams):
     actor_lr: float = 1e-4            # the paper: 1e-4 actor, 1e-3 critic
-    critic_lr: float = 1e-3
+    critic_lr: float = 1e-3           # critic (and image encoder) learning rate (Adam)
     noise: str = "ou"
     noise_std: float = 0.2
     noise_std_final: float = 0.05

@@ -53,19 +53,19 @@ from drivelab.run import Run
 
 @dataclass
 class Params(PolicyNetParams):
-    group_size: int = 8           # G rollouts per start state; env.num_envs must be a multiple
+    group_size: int = 4           # G rollouts per start state; env.num_envs must be a multiple (default 4)
     batch_steps: int = 4000       # minimum recorded steps per update (whole rounds on top)
     advantage: str = "return"     # return | reward_to_go
     gamma: float = 1.0            # discount of returns / rewards-to-go
-    lr: float = 3e-4
-    anneal_lr: bool = False
-    update_epochs: int = 4
-    num_minibatches: int = 4
-    clip_coef: float = 0.2
+    lr: float = 3e-4                  # learning rate (Adam)
+    anneal_lr: bool = False       # linear decay to 0 over the run
+    update_epochs: int = 4            # passes over each rollout
+    num_minibatches: int = 4          # minibatches per pass (minibatch = T * N / this)
+    clip_coef: float = 0.2            # PPO's epsilon: the ratio is clipped to [1 - eps, 1 + eps]
     kl_coef: float = 0.0          # weight of KL(pi_old || pi_theta), the rollout policy
-    ent_coef: float = 0.0
-    max_grad_norm: float = 0.5
-    normalize_obs: bool = False
+    ent_coef: float = 0.0             # weight of the entropy bonus
+    max_grad_norm: float = 0.5        # clip the global gradient norm to this
+    normalize_obs: bool = False   # running observation normalisation (saved with the weights)
 
     def validate(self) -> None:
         if self.group_size < 2:

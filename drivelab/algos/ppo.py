@@ -36,11 +36,11 @@ from drivelab.run import Run
 class Params(ActorCriticParams):
     """PPO's own hyperparameters; lr, num_steps, gamma, gae_lambda, ent_coef, ... are in
     :class:`drivelab.rollout.ActorCriticParams`."""
-    update_epochs: int = 4
-    num_minibatches: int = 4
-    clip_coef: float = 0.2
-    clip_vloss: bool = True
-    target_kl: float | None = None
+    update_epochs: int = 4            # passes over each rollout
+    num_minibatches: int = 4          # minibatches per pass (minibatch = T * N / this)
+    clip_coef: float = 0.2            # PPO's epsilon: the ratio is clipped to [1 - eps, 1 + eps]
+    clip_vloss: bool = True           # clip the value update as well (PPO2)
+    target_kl: float | None = None    # stop an update's epochs once the approximate KL exceeds this (None: never)
 
     def validate(self) -> None:
         super().validate()

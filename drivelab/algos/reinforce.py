@@ -41,15 +41,15 @@ from drivelab.run import Run
 
 @dataclass
 class Params(PolicyNetParams):
-    lr: float = 3e-3
-    gamma: float = 0.99
+    lr: float = 3e-3                  # learning rate (Adam)
+    gamma: float = 0.99               # discount factor
     # Minimum recorded env steps per update; the episodes in flight are completed on top.
     batch_steps: int = 4000
-    ent_coef: float = 0.0
+    ent_coef: float = 0.0             # weight of the entropy bonus
     # rtg | mean | normalize: what multiplies grad log pi (see the module docstring).
     advantage: str = "normalize"
     # Clip the global gradient norm (0 = off).
-    max_grad_norm: float = 0.0
+    max_grad_norm: float = 0.0        # clip the global gradient norm to this
 
     def validate(self) -> None:
         if self.advantage not in ("rtg", "mean", "normalize"):

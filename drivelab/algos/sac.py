@@ -33,14 +33,14 @@ from drivelab.run import Run
 
 @dataclass
 class Params(OffPolicyParams):
-    alpha_lr: float = 3e-4
+    alpha_lr: float = 3e-4            # learning rate of log(alpha)
     # Start well below 1 when rewards per step are small (MetaDrive: ~0.1-1): with alpha = 1 the
     # entropy bonus outweighs the reward, the policy stays near uniform while log(alpha) falls by
     # ~alpha_lr per update, and by the time the policy reacts to rewards alpha is ~0.001 and too
     # slow to come back; exploration is gone (MetaDrive, 20 minutes: route completion 5.8%,
     # vs 28.2% with 0.05).
     init_alpha: float = 1.0
-    autotune: bool = True
+    autotune: bool = True             # tune alpha toward target_entropy (else fixed at init_alpha)
     target_entropy: float | None = None   # None: -|A|
     actor_every: int = 1                  # actor and alpha update once every N critic updates
 

@@ -25,6 +25,15 @@ def _levels(bins: int, magnitude: float, single: float) -> np.ndarray:
     return np.linspace(magnitude, -magnitude, bins)
 
 
+def grid_table(steering_bins: int, throttle_bins: int, max_steering: float = 0.6,
+               max_throttle: float = 1.0) -> np.ndarray:
+    """(N * M, 2) float32: row i is the [steering, throttle] of discrete action i, row-major over
+    (throttle, steering) (see :class:`DiscreteActionGrid`)."""
+    steering = _levels(steering_bins, max_steering, 0.0)
+    throttle = _levels(throttle_bins, max_throttle, max_throttle)
+    return np.array([[s, t] for t in throttle for s in steering], dtype=np.float32)
+
+
 class DiscreteActionGrid(gym.ActionWrapper):
     """N steering x M throttle discrete actions over a continuous ``[steering, throttle]`` action.
 
@@ -47,10 +56,7 @@ class DiscreteActionGrid(gym.ActionWrapper):
             raise DrivelabError(
                 f"env.action_grid needs a Box(2,) [steering, throttle] action space; {env.spec.id if env.spec else env} has {space}"
             )
-        steering = _levels(steering_bins, max_steering, 0.0)
-        throttle = _levels(throttle_bins, max_throttle, max_throttle)
-        # table[i] = [steering, throttle] for action i; row-major over (throttle, steering).
-        self.table = np.array([[s, t] for t in throttle for s in steering], dtype=np.float32)
+        self.table = grid_table(steering_bins, throttle_bins, max_steering, max_throttle)
         self.action_space = gym.spaces.Discrete(len(self.table))
 
     def action(self, action) -> np.ndarray:
