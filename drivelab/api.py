@@ -35,6 +35,7 @@ from drivelab.errors import DrivelabError
 from drivelab.evaluation import EvalResult, run_episodes
 from drivelab.export import DeployedPolicy, export_policy, metadata
 from drivelab.run import Run
+from drivelab.video import Recorder
 
 
 def build_config(data: dict, where: str = "config", algorithms: Mapping[str, AlgoSpec] = ALGORITHMS) -> TrainConfig:
@@ -137,12 +138,13 @@ def load_policy(path: str | Path) -> tuple[torch.nn.Module, TrainConfig, Checkpo
 
 def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None = None,
                         env_kwargs: dict | None = None, num_envs: int | None = None, seed: int = 0,
-                        deterministic: bool = True) -> tuple[EvalResult, EnvConfig, Path]:
+                        deterministic: bool = True, recorder: Recorder | None = None) -> tuple[EvalResult, EnvConfig, Path]:
     """Load a checkpoint (or a run's latest) and evaluate its policy.
 
     ``env_id`` evaluates on another env (e.g. train on ``MetaDrive-100envs-v0``, evaluate on
     ``MetaDrive-validation-v0``); the training env's kwargs are then dropped, as they may
-    redefine that env's scenario range, and ``env_kwargs`` are used instead.
+    redefine that env's scenario range, and ``env_kwargs`` are used instead. A ``recorder``
+    (:class:`drivelab.video.Recorder`) films the episodes, on one env.
     """
     if episodes < 1:
         raise DrivelabError(f"--episodes must be >= 1, got {episodes}")
@@ -152,28 +154,31 @@ def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None
     if env_id is not None and env_id != env_cfg.id:
         env_cfg.id, env_cfg.kwargs = env_id, {}
     env_cfg.kwargs.update(env_kwargs or {})
-    env_cfg.num_envs = max(1, min(num_envs or env_cfg.num_envs, episodes))
-    result = play(env_cfg, policy_from_checkpoint(ckpt, cfg, env_cfg), episodes, seed, deterministic)
+    env_cfg.num_envs = 1 if recorder is not None else max(1, min(num_envs or env_cfg.num_envs, episodes))
+    result = play(env_cfg, policy_from_checkpoint(ckpt, cfg, env_cfg), episodes, seed, deterministic, recorder=recorder)
     return result, env_cfg, ckpt.path
 
 
-def evaluate_baseline(name: str, env_cfg: EnvConfig, episodes: int = 10, seed: int = 0) -> EvalResult:
+def evaluate_baseline(name: str, env_cfg: EnvConfig, episodes: int = 10, seed: int = 0,
+                      recorder: Recorder | None = None) -> EvalResult:
     """Evaluate a reference policy (``random``, ``lane-keeping``, ``metadrive-expert``; see
     :mod:`drivelab.baselines`) with the protocol of :func:`evaluate_checkpoint`: same env config,
     episode k reset with seed ``seed + k``, same metrics."""
     if episodes < 1:
         raise DrivelabError(f"--episodes must be >= 1, got {episodes}")
-    env_cfg = dataclasses.replace(env_cfg, num_envs=max(1, min(env_cfg.num_envs, episodes)))
+    env_cfg = dataclasses.replace(env_cfg, num_envs=1 if recorder else max(1, min(env_cfg.num_envs, episodes)))
     wrapper, policy = baseline(name, env_spaces(env_cfg)[1], seed)
-    return play(env_cfg, policy, episodes, seed, wrapper=wrapper)
+    return play(env_cfg, policy, episodes, seed, wrapper=wrapper, recorder=recorder)
 
 
 def play(env_cfg: EnvConfig, policy, episodes: int, seed: int = 0, deterministic: bool = True,
-         wrapper=None) -> EvalResult:
-    """``episodes`` episodes of ``policy`` on a vector env built from ``env_cfg`` (then closed)."""
-    envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, wrapper=wrapper)
+         wrapper=None, recorder: Recorder | None = None) -> EvalResult:
+    """``episodes`` episodes of ``policy`` on a vector env built from ``env_cfg`` (then closed);
+    with a ``recorder``, the envs render ``rgb_array`` frames for it."""
+    envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, wrapper=wrapper,
+                           render_mode="rgb_array" if recorder is not None else None)
     try:
-        return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic)
+        return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic, recorder=recorder)
     finally:
         envs.close()
 

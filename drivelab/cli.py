@@ -70,7 +70,8 @@ def _train_parser(sub, epilog: str | None = None) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        description="Train an agent. Any config field can be set with --section.field VALUE.")
     p.add_argument("--config", help="YAML config file, or the name of a shipped config (drivelab configs)")
-    p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest checkpoint")
+    p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR (or mlflow:RUN_ID, fetched into "
+                                                       "--run-dir or runs/mlflow-RUN_ID) from its latest checkpoint")
     p.add_argument("--algo", help=f"algorithm: {', '.join(ALGORITHMS)}")
     p.add_argument("--env", help="Gymnasium env id, e.g. CartPole-v1 or MetaDrive-10env-v0")
     p.add_argument("--steps", type=int, help="total env steps to train for")
@@ -98,6 +99,10 @@ def _eval_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="episode k is reset with seed SEED+k")
     p.add_argument("--stochastic", action="store_true", help="sample actions instead of taking the mode")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--video", metavar="FILE", help="record the episodes into one video (.mp4, or .gif); plays on one env")
+    p.add_argument("--video-dir", metavar="DIR", help="record one video per episode into DIR (episode_<k>.mp4)")
+    p.add_argument("--no-overlay", action="store_true", help="videos without the text overlay")
+    p.add_argument("--mlflow-uri", help="where mlflow:RUN_ID paths live (default: $MLFLOW_TRACKING_URI, else runs/mlflow.db)")
 
 
 def build_parser(train_epilog: str | None = None) -> argparse.ArgumentParser:
@@ -108,6 +113,18 @@ def build_parser(train_epilog: str | None = None) -> argparse.ArgumentParser:
     _eval_parser(sub)
     sub.add_parser("envs", help="list drivelab's MetaDrive env ids")
     sub.add_parser("configs", help="list the shipped configs (drivelab train --config NAME)")
+    report = sub.add_parser("report", help="one self-contained HTML report of runs: curves, evaluation, video")
+    report.add_argument("runs", nargs="+", metavar="RUN")
+    report.add_argument("--out", help="HTML file (default: RUN/report.html for one run, report.html otherwise)")
+    report.add_argument("--episodes", type=int, default=10, help="evaluation episodes per policy")
+    report.add_argument("--no-baselines", action="store_true", help="skip the reference policies")
+    plot = sub.add_parser("plot", help="training curves of runs (seeds of one config: mean and 95%% CI band)")
+    plot.add_argument("runs", nargs="+", metavar="RUN")
+    plot.add_argument("--metric", action="append", help="a metric to draw, e.g. eval/success_rate (repeatable; "
+                                                        "default: return, entropy, losses, driving metrics)")
+    plot.add_argument("--out", help="PNG file (default: RUN/curves.png for one run, curves.png otherwise)")
+    plot.add_argument("--window", type=int, default=10, help="rolling mean over this many logged points")
+    plot.add_argument("--x", choices=("steps", "time"), default="steps", help="env steps or wall time")
     export = sub.add_parser("export", help="export a trained policy to ONNX or TorchScript (runs without drivelab)")
     export.add_argument("path", help="run directory, checkpoint directory, or RUN/best")
     export.add_argument("--format", default="onnx", choices=("onnx", "torchscript"))
@@ -164,6 +181,8 @@ def _train_data(args: argparse.Namespace, extra: dict[str, Any]) -> tuple[dict, 
 
 
 def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
+    if args.resume:
+        args.resume = _local_run(args.resume, args.mlflow_uri, args.run_dir)
     data, resume = _train_data(args, extra)
     cfg = api.build_config(data)
     run_dir, metrics = api.train(cfg, resume=resume, progress=not args.no_progress)
@@ -192,11 +211,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if not args.path and not args.policy:
         raise DrivelabError("drivelab eval needs a run or checkpoint directory, or --policy NAME for a baseline")
     kwargs = _env_kwargs(args.env_kwarg)
+    args.path = [_local_run(path, args.mlflow_uri) for path in args.path]
+    if (args.video or args.video_dir) and len(args.path) + len(args.policy) != 1:
+        raise DrivelabError("--video and --video-dir record one policy: give one path or one --policy")
     rows: list[dict[str, Any]] = []
     env_cfg = None
     for path in args.path:
         result, env_cfg, ckpt = api.evaluate_checkpoint(path, args.episodes, args.env, kwargs, args.num_envs,
-                                                        args.seed, deterministic=not args.stochastic)
+                                                        args.seed, deterministic=not args.stochastic,
+                                                        recorder=_recorder(args))
         rows.append({**result.summary(), "env": env_cfg.id, "checkpoint": str(ckpt), "step": checkpoint_step(ckpt)})
     if args.policy:
         # The baselines play the env the checkpoints were evaluated on (its id and kwargs, without
@@ -206,8 +229,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         base.num_envs = args.num_envs or 2
         base.validate()
         for name in args.policy:
-            rows.append({**api.evaluate_baseline(name, base, args.episodes, args.seed).summary(), "env": base.id,
-                         "policy": name})
+            rows.append({**api.evaluate_baseline(name, base, args.episodes, args.seed, _recorder(args)).summary(),
+                         "env": base.id, "policy": name})
     if args.json:
         print(json.dumps(rows[0] if len(rows) == 1 else rows))
     elif len(rows) == 1:
@@ -217,6 +240,28 @@ def cmd_eval(args: argparse.Namespace) -> int:
     else:
         print(format_table(rows, args.episodes, args.seed))
     return 0
+
+
+def _local_run(path: str, tracking_uri: str | None, into: str | None = None) -> str:
+    """``mlflow:RUN_ID`` -> a local run directory fetched from the run's artifacts; other paths as they are."""
+    if not path.startswith("mlflow:"):
+        return path
+    from drivelab.track import fetch_mlflow_run
+
+    return str(fetch_mlflow_run(path, tracking_uri, Path(into or Path("runs") / f"mlflow-{path.split(':', 1)[1]}")))
+
+
+def _recorder(args: argparse.Namespace):
+    """The video recorder that --video / --video-dir ask for, or None."""
+    from drivelab.video import Recorder
+
+    if args.video and args.video_dir:
+        raise DrivelabError("give --video or --video-dir, not both")
+    if args.video:
+        return Recorder(args.video, with_overlay=not args.no_overlay)
+    if args.video_dir:
+        return Recorder(args.video_dir, per_episode=True, with_overlay=not args.no_overlay)
+    return None
 
 
 def format_table(rows: list[dict[str, Any]], episodes: int, seed: int) -> str:
@@ -266,6 +311,25 @@ def cmd_reward(args: argparse.Namespace) -> int:
         print(f"{args.episodes} episodes of {args.env} with policy '{args.policy}', scored under each reward config:")
         print(reward_tools.format_table(table))
         print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from drivelab.report import write_report
+
+    if args.episodes < 1:
+        raise DrivelabError(f"--episodes must be >= 1, got {args.episodes}")
+    print(f"wrote {write_report(args.runs, args.out, args.episodes, baselines=not args.no_baselines)}")
+    return 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from drivelab.plots import plot_runs
+
+    if args.window < 1:
+        raise DrivelabError(f"--window must be >= 1, got {args.window}")
+    out = args.out or (Path(args.runs[0]) / "curves.png" if len(args.runs) == 1 else "curves.png")
+    print(f"wrote {plot_runs(args.runs, out, args.metric, args.window, args.x)}")
     return 0
 
 
@@ -323,7 +387,7 @@ def main(argv: list[str] | None = None) -> None:
         else:
             if unknown:
                 parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-            code = {"eval": cmd_eval, "reward": cmd_reward, "export": cmd_export, "configs": lambda a: cmd_configs()}.get(
+            code = {"eval": cmd_eval, "reward": cmd_reward, "export": cmd_export, "plot": cmd_plot, "report": cmd_report, "configs": lambda a: cmd_configs()}.get(
                 args.command, lambda a: cmd_envs())(args)
     except DrivelabError as exc:
         print(f"drivelab: error: {exc}", file=sys.stderr)

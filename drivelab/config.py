@@ -80,6 +80,8 @@ class EvalConfig:
     num_envs: int = 1
     # The checkpoint with the best value of this eval/* metric is kept as checkpoints/best.
     best_metric: str = "return_mean"
+    # On a new best, film one episode: RUN/videos/step_<N>.mp4 (needs the env's rgb_array render).
+    video: bool = True
 
 
 @dataclass

@@ -36,9 +36,11 @@ class EvalResult:
 
 @torch.no_grad()
 def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, deterministic: bool = True,
-                 device: torch.device | str = "cpu") -> EvalResult:
+                 device: torch.device | str = "cpu", recorder=None) -> EvalResult:
     """Play exactly ``episodes`` episodes (episode k with seed ``seed + k``) on ``envs``, which must
-    use ``AutoresetMode.DISABLED``. ``policy`` has ``act(obs, deterministic)`` and ``to_env(action)``."""
+    use ``AutoresetMode.DISABLED``. ``policy`` has ``act(obs, deterministic)`` and ``to_env(action)``.
+    ``recorder`` (:class:`drivelab.video.Recorder`) films env 0's episodes: it is handed the
+    envs after every reset and step."""
     if episodes < 1:
         raise DrivelabError(f"the number of evaluation episodes must be >= 1, got {episodes}")
     n = envs.num_envs
@@ -49,11 +51,16 @@ def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, determin
     lengths = np.zeros(episodes, np.int64)
     metrics: dict[str, np.ndarray] = {}        # metric -> (episodes,), for those the env reports
     finished = 0
-    obs, _ = envs.reset(seed=[seed + i for i in range(n)])
+    obs, info = envs.reset(seed=[seed + i for i in range(n)])
+    if recorder is not None:
+        recorder.start(envs, info, episode_of[0])
     while finished < episodes:
         action = policy.act(torch.as_tensor(obs, device=device), deterministic=deterministic)
-        obs, reward, terminated, truncated, info = envs.step(policy.to_env(action))
+        env_action = policy.to_env(action)
+        obs, reward, terminated, truncated, info = envs.step(env_action)
         done = terminated | truncated
+        if recorder is not None:
+            recorder.step(envs, env_action[0], reward[0], info, bool(done[0]))
         ended = tracker.step(reward, done, info)
         if not ended:
             continue
@@ -69,5 +76,9 @@ def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, determin
             reset_seeds[episode.env] = seed + next_episode
             next_episode += 1
         if finished < episodes:
-            obs, _ = envs.reset(seed=reset_seeds, options={"reset_mask": done})
+            obs, info = envs.reset(seed=reset_seeds, options={"reset_mask": done})
+            if recorder is not None and done[0]:
+                recorder.start(envs, info, episode_of[0])
+    if recorder is not None:
+        recorder.close()
     return EvalResult(returns, lengths, metrics)

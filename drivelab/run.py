@@ -50,6 +50,7 @@ from drivelab.envs import make_vector_env
 from drivelab.episodes import EpisodeTracker
 from drivelab.evaluation import run_episodes
 from drivelab.track import Tracker
+from drivelab.video import Recorder
 
 # (tensors, JSON-able state) that a trainer saves beside its networks, e.g. a replay buffer.
 ExtraState = Callable[[], tuple[dict[str, torch.Tensor], dict[str, Any]]]
@@ -240,7 +241,23 @@ class Run:
             self._best = score
             best = self._save(name="best")
             (best / "eval.json").write_text(json.dumps({"step": self.step, **summary}, indent=1))
+            if spec.video:
+                self._film_best()
         return summary
+
+    def _film_best(self) -> None:
+        """One evaluation episode of the new best policy as ``RUN/videos/step_<N>.mp4`` (notebook
+        003's habit), in TensorBoard as a strip of frames and in MLflow as an artifact."""
+        recorder = Recorder(self.dir / "videos" / f"step_{self.step:012d}.mp4", max_episodes=1, thumbnails=8)
+        envs = make_vector_env(eval_env_config(self.cfg), num_envs=1, autoreset_mode=AutoresetMode.DISABLED,
+                               render_mode="rgb_array")
+        self._policy.eval()
+        try:
+            run_episodes(envs, self._policy, 1, seed=self.cfg.eval.seed, device=self.device, recorder=recorder)
+        finally:
+            envs.close()
+            self._policy.train()
+        self.tracker.log_video(self.step, recorder.paths[0], recorder.strip())
 
     def _checkpoint_due(self) -> bool:
         """None yet, ``checkpoint_every`` steps since the last, or the end of training."""

@@ -9,14 +9,67 @@ killed and resumed run has one clean history.
 from __future__ import annotations
 
 import csv
+import json
 import math
 import os
+import shutil
 import time
 from collections.abc import Mapping
 from pathlib import Path
 
+from drivelab import __version__
+from drivelab.checkpoint import list_checkpoints
 from drivelab.config import TrackConfig, config_to_dict
 from drivelab.errors import DrivelabError
+from drivelab.plots import plot_runs
+
+
+def default_mlflow_uri(runs_root: Path) -> str:
+    """The project's MLflow store: ``sqlite:///<runs root>/mlflow.db``."""
+    return f"sqlite:///{(Path(runs_root) / 'mlflow.db').resolve()}"
+
+
+def git_commit() -> str | None:
+    """The commit of the code being run, when it runs from a git checkout."""
+    import subprocess
+
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True,
+                             timeout=5)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() if out.returncode == 0 else None
+
+
+def fetch_mlflow_run(reference: str, tracking_uri: str | None, into: Path) -> Path:
+    """``mlflow:RUN_ID`` -> a local run directory with the run's config, metrics and latest
+    checkpoint (and best, if logged), downloaded from its artifacts (a local store or a server)."""
+    try:
+        import mlflow
+    except ImportError:
+        raise DrivelabError("mlflow: references need mlflow: pip install 'drivelab[mlflow]'") from None
+    run_id = reference.split(":", 1)[1]
+    client = mlflow.MlflowClient(tracking_uri=tracking_uri or os.environ.get("MLFLOW_TRACKING_URI")
+                                 or default_mlflow_uri(Path("runs")))
+    try:
+        client.get_run(run_id)
+    except Exception as exc:  # noqa: BLE001 - MLflow raises several types for a bad id or store
+        raise DrivelabError(f"MLflow run {run_id} not found at {client.tracking_uri}: {str(exc).splitlines()[0]}") from None
+    into.mkdir(parents=True, exist_ok=True)
+    names = {a.path for a in client.list_artifacts(run_id)}
+    for name in ("config.yaml", "metrics.csv"):
+        if name in names:
+            client.download_artifacts(run_id, name, str(into))
+    if "checkpoints" not in names:
+        raise DrivelabError(f"MLflow run {run_id} has no checkpoint artifacts (was it trained with --mlflow?)")
+    client.download_artifacts(run_id, "checkpoints", str(into))
+    latest = into / "checkpoints" / "latest"
+    step = json.loads((latest / "state.json").read_text())["step"]
+    target = into / "checkpoints" / f"step_{step:012d}"   # a run directory's layout
+    shutil.rmtree(target, ignore_errors=True)            # fetched before: the download is the truth
+    os.replace(latest, target)
+    (into / "mlflow_run_id").write_text(run_id)
+    return into
 
 
 def _flatten(data: Mapping, prefix: str = "") -> dict[str, object]:
@@ -66,10 +119,12 @@ class Tracker:
 
         logging.getLogger("mlflow").setLevel(logging.WARNING)
         logging.getLogger("alembic").setLevel(logging.WARNING)
-        uri = track.mlflow_uri or f"sqlite:///{(self.run_dir / 'mlflow.db').resolve()}"
+        # One store for the runs of a project: beside the run directories (`mlflow ui --backend-store-uri
+        # sqlite:///runs/mlflow.db` compares them all), unless a tracking URI (a server) is given.
+        uri = track.mlflow_uri or default_mlflow_uri(self.run_dir.parent)
         mlflow.set_tracking_uri(uri)
         if mlflow.get_experiment_by_name(track.experiment) is None:
-            artifacts = (self.run_dir / "mlartifacts").resolve().as_uri() if track.mlflow_uri is None else None
+            artifacts = (self.run_dir.parent / "mlartifacts").resolve().as_uri() if track.mlflow_uri is None else None
             mlflow.create_experiment(track.experiment, artifact_location=artifacts)
         mlflow.set_experiment(track.experiment)
         id_file = self.run_dir / "mlflow_run_id"
@@ -79,6 +134,8 @@ class Tracker:
             id_file.write_text(run.info.run_id)
             # MLflow params are short strings; long lists are cut by MLflow's limit (6000 chars).
             mlflow.log_params({k: str(v)[:500] for k, v in _flatten(params).items()})
+            mlflow.set_tags({"algo": params["algo"], "env": params["env"]["id"], "drivelab_version": __version__,
+                             **({"git_commit": commit} if (commit := git_commit()) else {})})
             mlflow.log_artifact(str(self.run_dir / "config.yaml"))
         self.mlflow = mlflow
 
@@ -92,10 +149,33 @@ class Tracker:
         if self.mlflow is not None:
             self.mlflow.log_metrics(clean, step=step)
 
+    def log_video(self, step: int, path: Path, strip=None) -> None:
+        """A video file of the run: a strip of its frames in TensorBoard, the file in MLflow."""
+        if strip is not None:
+            self.tb.add_image("eval/video_frames", strip, step, dataformats="HWC")
+            self.tb.flush()
+        if self.mlflow is not None:
+            self.mlflow.log_artifact(str(path), "videos")
+
     def close(self) -> None:
         self.tb.close()
         self._csv_file.close()
         if self.mlflow is not None:
-            self.mlflow.log_artifact(str(self.csv_path))
+            self._upload_run_files()
             self.mlflow.end_run()
             self.mlflow = None
+
+    def _upload_run_files(self) -> None:
+        """metrics.csv, the curves, and the latest and best checkpoints (``drivelab eval
+        mlflow:RUN_ID`` and ``train --resume mlflow:RUN_ID`` fetch them from there)."""
+        self.mlflow.log_artifact(str(self.csv_path))
+        self.mlflow.log_artifact(str(self.run_dir / "config.yaml"))
+        checkpoints = list_checkpoints(self.run_dir)
+        if checkpoints:
+            self.mlflow.log_artifacts(str(checkpoints[-1]), "checkpoints/latest")
+        if (self.run_dir / "checkpoints" / "best").is_dir():
+            self.mlflow.log_artifacts(str(self.run_dir / "checkpoints" / "best"), "checkpoints/best")
+        try:
+            self.mlflow.log_artifact(str(plot_runs([self.run_dir], self.run_dir / "curves.png")))
+        except DrivelabError:  # nothing logged yet
+            pass

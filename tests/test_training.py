@@ -50,13 +50,13 @@ def test_same_seed_same_metrics_and_interrupted_run_resumes_exactly(tmp_path):
     assert list((split / "tb").glob("events.out.tfevents.*"))
 
 
-def test_mlflow_tracking_in_the_run_directory(tmp_path):
+def test_mlflow_tracking_in_the_project_store_beside_the_run_directories(tmp_path):
     import mlflow
 
     run_dir = tmp_path / "ml"
     train(_cartpole(run_dir, 1000, track={"mlflow": True, "experiment": "drivelab-test"}), progress=False)
     run_id = (run_dir / "mlflow_run_id").read_text().strip()
-    client = mlflow.MlflowClient(tracking_uri=f"sqlite:///{run_dir / 'mlflow.db'}")
+    client = mlflow.MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")   # one store per project
     run = client.get_run(run_id)
     assert "episode/return" in run.data.metrics and run.data.params["reinforce.lr"] == "0.01"
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import difflib
 import functools
+import os
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -50,6 +51,9 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
     """
     _check_id(cfg.id)
     kwargs = cfg.kwargs or {}
+    if render_mode is not None:  # pygame-drawn frames (CartPole, MetaDrive's top-down) need no display
+        os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+        os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
     try:
         env = gym.make(cfg.id, render_mode=render_mode, **kwargs)
     except DrivelabError:

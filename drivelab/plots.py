@@ -1,0 +1,136 @@
+"""Training curves of one or more runs (``drivelab plot``), headless with matplotlib.
+
+By default notebook 002's four panels (episode return, entropy, value/critic loss,
+policy/actor loss), plus success rate and route completion for driving envs and the periodic
+evaluation's return when there is one. Each curve is a rolling mean over ``window`` logged
+points. Runs whose configs are equal but for the seed (and run directory) form a group, drawn
+as the mean over seeds with a 95% confidence band (t-distribution over the seeds' curves,
+interpolated onto common steps).
+"""
+
+from __future__ import annotations
+
+import csv
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from drivelab.errors import DrivelabError
+
+# panel title -> metric names, the first one a run logged is drawn
+DEFAULT_PANELS = {
+    "episode return": ("episode/return",),
+    "entropy": ("loss/entropy", "charts/entropy"),
+    "value / critic loss": ("loss/value", "loss/critic"),
+    "policy / actor loss": ("loss/policy", "loss/actor"),
+    "success rate": ("episode/success_rate",),
+    "route completion": ("episode/route_completion",),
+    "evaluation return": ("eval/return_mean",),
+}
+
+
+def read_metrics(run_dir: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """metric -> (steps, wall seconds since the first log, values) from ``RUN/metrics.csv``."""
+    path = Path(run_dir) / "metrics.csv"
+    if not path.is_file():
+        raise DrivelabError(f"not a drivelab run directory (no metrics.csv): {run_dir}")
+    rows: dict[str, list[tuple[int, float, float]]] = defaultdict(list)
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            try:
+                rows[row["name"]].append((int(row["step"]), float(row["time"]), float(row["value"])))
+            except (KeyError, TypeError, ValueError):
+                continue  # a half-written last line of a killed run
+    start = min((r[0][1] for r in rows.values() if r), default=0.0)
+    return {name: (np.array([r[0] for r in rs]), np.array([r[1] for r in rs]) - start, np.array([r[2] for r in rs]))
+            for name, rs in rows.items()}
+
+
+def rolling_mean(values: np.ndarray, window: int) -> np.ndarray:
+    """Mean of the last ``window`` values at each point (fewer at the start)."""
+    cumulative = np.cumsum(np.insert(np.asarray(values, np.float64), 0, 0.0))
+    end = np.arange(1, len(values) + 1)
+    start = np.maximum(end - window, 0)
+    return (cumulative[end] - cumulative[start]) / (end - start)
+
+
+def group_runs(run_dirs: list[Path]) -> dict[str, list[Path]]:
+    """Runs with the same config but for seed and run directory, keyed by a short label."""
+    groups: dict[str, list[Path]] = defaultdict(list)
+    labels: dict[str, str] = {}
+    for run in run_dirs:
+        config_file = run / "config.yaml"
+        config = yaml.safe_load(config_file.read_text()) if config_file.is_file() else {}
+        config = config if isinstance(config, dict) else {}
+        key = yaml.safe_dump({k: v for k, v in config.items() if k not in ("seed", "run_dir")}, sort_keys=True)
+        label = f"{config.get('algo', '?')} on {(config.get('env') or {}).get('id', '?')}"
+        labels.setdefault(key, label if label not in labels.values() else f"{label} ({run.name})")
+        groups[labels[key]].append(run)
+    return dict(groups)
+
+
+def mean_and_band(curves: list[tuple[np.ndarray, np.ndarray]], points: int = 200) -> tuple[np.ndarray, ...]:
+    """(x, mean, low, high) of several (x, y) curves on a common grid over their shared range;
+    the band is the 95% confidence interval of the mean (Student's t with n - 1 dof)."""
+    from scipy import stats
+
+    lo, hi = max(c[0][0] for c in curves), min(c[0][-1] for c in curves)
+    grid = np.linspace(lo, hi, points) if hi > lo else np.array([lo])
+    ys = np.stack([np.interp(grid, x, y) for x, y in curves])
+    mean = ys.mean(axis=0)
+    if len(curves) < 2:
+        return grid, mean, mean, mean
+    half = stats.t.ppf(0.975, len(curves) - 1) * ys.std(axis=0, ddof=1) / np.sqrt(len(curves))
+    return grid, mean, mean - half, mean + half
+
+
+def plot_runs(run_dirs: list[str | Path], out: str | Path, metrics: list[str] | None = None, window: int = 10,
+              x_axis: str = "steps") -> Path:
+    """Draw the runs' curves into ``out`` (PNG): one panel per metric (or per default panel)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [Path(r) for r in run_dirs]
+    data = {run: read_metrics(run) for run in runs}
+    if metrics:
+        panels = {name: (name,) for name in metrics}
+    else:
+        panels = {title: names for title, names in DEFAULT_PANELS.items()
+                  if any(n in data[run] for run in runs for n in names)}
+    if not panels:
+        raise DrivelabError(f"none of the metrics to plot were logged by {', '.join(map(str, runs))}")
+    cols = min(3, len(panels))
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.6 * rows), squeeze=False)
+    for ax, (title, names) in zip(axes.flat, panels.items()):
+        for label, members in group_runs(runs).items():
+            curves = []
+            for run in members:
+                name = next((n for n in names if n in data[run]), None)
+                if name is not None:
+                    steps, seconds, values = data[run][name]
+                    curves.append((steps if x_axis == "steps" else seconds, rolling_mean(values, window)))
+            if not curves:
+                continue
+            x, mean, low, high = mean_and_band(curves) if len(curves) > 1 else (*curves[0], None, None)
+            line, = ax.plot(x, mean, label=label + (f" ({len(curves)} seeds)" if len(curves) > 1 else ""))
+            if low is not None:
+                ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2)
+        ax.set_title(title)
+        ax.set_xlabel("env steps" if x_axis == "steps" else "wall time (s)")
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="lower center", ncol=min(3, len(handles)), fontsize=9)
+    fig.tight_layout(rect=(0, 0.06 if handles else 0, 1, 1))
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
