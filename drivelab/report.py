@@ -25,6 +25,7 @@ from drivelab.baselines import BASELINES
 from drivelab.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
 from drivelab.config import EnvConfig
 from drivelab.plots import plot_runs, read_metrics
+from drivelab.track import default_mlflow_uri
 from drivelab.video import Recorder
 
 STYLE = """
@@ -147,4 +148,18 @@ def write_report(runs: list[str | Path], out: str | Path | None = None, episodes
                 f"{comparison}{''.join(sections)}</body></html>")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(page)
+    for run in runs:
+        _attach_to_mlflow(run, out)
     return out
+
+
+def _attach_to_mlflow(run: Path, report: Path) -> None:
+    """A run tracked with MLflow gets its report as an artifact of its MLflow run."""
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    track = config.get("track") or {}
+    if not track.get("mlflow") or not (run / "mlflow_run_id").is_file():
+        return
+    import mlflow
+
+    client = mlflow.MlflowClient(tracking_uri=track.get("mlflow_uri") or default_mlflow_uri(run.parent))
+    client.log_artifact((run / "mlflow_run_id").read_text().strip(), str(report))
