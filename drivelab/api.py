@@ -77,6 +77,8 @@ def train(algo: str | TrainConfig, env: str | Mapping[str, Any] | None = None, *
     checkpoint = None
     if resume:
         checkpoint = load_checkpoint(cfg.run_dir)
+        if not isinstance(checkpoint.state.get("numpy_rng"), dict):
+            raise DrivelabError(f"checkpoint {checkpoint.path} cannot be resumed: its state.json lacks the RNG state")
         if checkpoint.step >= cfg.steps:
             raise DrivelabError(
                 f"run {cfg.run_dir} is already at step {checkpoint.step} >= steps {cfg.steps}; pass a larger --steps to continue"
@@ -88,6 +90,9 @@ def train(algo: str | TrainConfig, env: str | Mapping[str, Any] | None = None, *
     run = Run(cfg, resume_from=checkpoint, progress=progress)
     try:
         spec.train(cfg, run)
+    except KeyboardInterrupt:  # Ctrl-C, or SIGTERM from a scheduler (the CLI turns it into this)
+        run.checkpoint_now()
+        raise
     finally:
         run.close()
     return TrainResult(run.dir, last_metrics(run.dir))
@@ -118,6 +123,8 @@ def last_metrics(run_dir: str | Path) -> dict[str, float]:
 
 def checkpoint_config(ckpt: Checkpoint, algorithms: Mapping[str, AlgoSpec] = ALGORITHMS) -> TrainConfig:
     """The resolved config a checkpoint was trained with."""
+    if not isinstance(ckpt.state.get("config"), dict):
+        raise DrivelabError(f"checkpoint file {ckpt.path / 'state.json'} holds no training config")
     return build_config(ckpt.state["config"], where=f"config in {ckpt.path}", algorithms=algorithms)
 
 

@@ -17,6 +17,7 @@ import json
 import os
 import re
 import shutil
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,7 +54,7 @@ def optimizer_to_flat(name: str, optimizer: torch.optim.Optimizer) -> tuple[dict
                 tensors[f"optim/{name}/{index}/{key}"] = value.detach().cpu().contiguous()
             else:
                 scalars.setdefault(str(index), {})[key] = value
-    return tensors, {"param_groups": sd["param_groups"], "scalars": scalars}
+    return tensors, {"param_groups": sd["param_groups"], "scalars": scalars, "tensors": len(tensors)}
 
 
 def optimizer_from_flat(name: str, optimizer: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], meta: dict) -> None:
@@ -142,18 +143,45 @@ def checkpoint_step(path: str | Path) -> int:
     return int(json.loads((Path(path) / "state.json").read_text())["step"])
 
 
-def load_checkpoint(path: str | Path) -> Checkpoint:
-    path = resolve_checkpoint(path)
+def read_checkpoint(path: Path) -> Checkpoint:
+    """One checkpoint directory, checked before any tensor is used: a complete safetensors file
+    and a well-formed ``state.json`` (a one-line error naming the file otherwise)."""
     try:
-        tensors = load_file(str(path / "tensors.safetensors"))
         state = json.loads((path / "state.json").read_text())
     except (OSError, ValueError) as exc:
-        raise DrivelabError(f"checkpoint {path} is unreadable: {exc}") from None
-    written_by = str(state.get("drivelab_version", "0.1")) if isinstance(state, dict) else "?"
+        raise DrivelabError(f"checkpoint file {path / 'state.json'} is unreadable: {exc}") from None
+    if not isinstance(state, dict) or not isinstance(state.get("step"), int):
+        raise DrivelabError(f"checkpoint file {path / 'state.json'} is not a drivelab checkpoint state (no step)")
+    try:
+        tensors = load_file(str(path / "tensors.safetensors"))
+    except Exception as exc:  # noqa: BLE001 - safetensors raises its own error type for torn files
+        raise DrivelabError(f"checkpoint file {path / 'tensors.safetensors'} is unreadable: "
+                            f"{str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__}") from None
+    written_by = str(state.get("drivelab_version", "0.1"))
     if written_by.split(".")[0] != __version__.split(".")[0]:
         raise DrivelabError(f"checkpoint {path} was written by drivelab {written_by}; this is drivelab {__version__}, "
                             "whose checkpoints differ: evaluate it with that version")
     return Checkpoint(path=path, tensors=tensors, state=state)
+
+
+def load_checkpoint(path: str | Path) -> Checkpoint:
+    """A checkpoint directory, or a run's newest intact checkpoint: an unreadable newer one is
+    skipped with a warning on stderr (a run killed while writing, a damaged disk)."""
+    resolved = resolve_checkpoint(path)
+    if resolved.parent.name != "checkpoints" or resolved.name == "best" or resolved == Path(path):
+        return read_checkpoint(resolved)
+    candidates = list_checkpoints(resolved.parent.parent)[::-1]
+    first_error = None
+    for candidate in candidates:
+        try:
+            checkpoint = read_checkpoint(candidate)
+        except DrivelabError as exc:
+            first_error = first_error or exc
+            continue
+        if first_error is not None:
+            print(f"drivelab: warning: {first_error}; using the newest intact checkpoint, {candidate}", file=sys.stderr)
+        return checkpoint
+    raise first_error or DrivelabError(f"no checkpoint found in {path}")
 
 
 def restore(ckpt: Checkpoint, modules: dict[str, nn.Module],
@@ -168,6 +196,10 @@ def restore(ckpt: Checkpoint, modules: dict[str, nn.Module],
             first = str(exc).strip().splitlines()[0]
             raise DrivelabError(f"checkpoint {ckpt.path} does not fit the '{name}' network: {first}") from None
     for name, optimizer in (optimizers or {}).items():
-        optimizer_from_flat(name, optimizer, ckpt.tensors, ckpt.state["optimizers"][name])
+        meta = (ckpt.state.get("optimizers") or {}).get(name)
+        stored = sum(key.startswith(f"optim/{name}/") for key in ckpt.tensors)
+        if meta is None or stored != meta.get("tensors", stored):
+            raise DrivelabError(f"checkpoint {ckpt.path} lacks the '{name}' optimiser state needed to resume")
+        optimizer_from_flat(name, optimizer, ckpt.tensors, meta)
     if rng:
         torch.set_rng_state(ckpt.tensors["rng/torch"])

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -231,14 +233,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
         for name in args.policy:
             rows.append({**api.evaluate_baseline(name, base, args.episodes, args.seed, _recorder(args)).summary(),
                          "env": base.id, "policy": name})
-    if args.json:
-        print(json.dumps(rows[0] if len(rows) == 1 else rows))
+    nonfinite = [f"{k}={v}" for row in rows for k, v in row.items() if isinstance(v, float) and not math.isfinite(v)]
+    if args.json:  # always valid JSON: a non-finite number is null
+        clean = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()} for row in rows]
+        print(json.dumps(clean[0] if len(clean) == 1 else clean, allow_nan=False))
     elif len(rows) == 1:
         row = rows[0]
         what = f"{row['checkpoint']} (step {row['step']})" if "checkpoint" in row else f"the {row['policy']} baseline"
         print(format_eval(row, row["env"], what))
     else:
         print(format_table(rows, args.episodes, args.seed))
+    if nonfinite:
+        raise DrivelabError(f"evaluation gave non-finite results ({', '.join(nonfinite[:3])}): the policy or env diverged")
     return 0
 
 
@@ -360,6 +366,11 @@ def cmd_envs() -> int:
     return 0
 
 
+def _terminate(signum, frame) -> None:
+    """SIGTERM (what a cluster scheduler sends) stops a run like Ctrl-C: checkpoint, then exit."""
+    raise KeyboardInterrupt
+
+
 def algo_help(name: str) -> str:
     """The hyperparameters of one algorithm: field, type, default, meaning."""
     from drivelab.config import field_docs
@@ -379,6 +390,7 @@ def main(argv: list[str] | None = None) -> None:
         algo = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--algo"), None) or \
             next((a.split("=", 1)[1] for a in argv if a.startswith("--algo=")), None)
     parser = build_parser(train_epilog=algo_help(algo) if algo in ALGORITHMS else None)
+    signal.signal(signal.SIGTERM, _terminate)
     args, unknown = parser.parse_known_args(argv)
     run_dir = getattr(args, "resume", None) or getattr(args, "run_dir", None)
     try:

@@ -32,8 +32,11 @@ Metrics, the same for every algorithm (``metrics.csv``, TensorBoard, MLflow):
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import json
 import math
+import os
+import shutil
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -47,6 +50,7 @@ from tqdm.auto import tqdm
 from drivelab.checkpoint import Checkpoint, restore, save_checkpoint
 from drivelab.config import EnvConfig, TrainConfig, config_to_dict, save_config
 from drivelab.envs import make_vector_env
+from drivelab.errors import DrivelabError
 from drivelab.episodes import EpisodeTracker
 from drivelab.evaluation import run_episodes
 from drivelab.track import Tracker
@@ -96,6 +100,8 @@ class Run:
         self.cfg = cfg
         self.dir = Path(cfg.run_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
+        self._lock = lock_run_dir(self.dir)
+        remove_stale_temporaries(self.dir)
         save_config(cfg, self.dir / "config.yaml")
         self.device = torch.device(cfg.device)
         torch.set_num_threads(cfg.torch_threads)
@@ -125,6 +131,7 @@ class Run:
         self._optimizers: dict[str, torch.optim.Optimizer] = {}
         self._policy: torch.nn.Module | None = None
         self._eval_envs = None
+        self._extra_state: ExtraState | None = None
         self.tracker = Tracker(self.dir, cfg, resume_step=self.step if resume_from else None)
         self.pbar = tqdm(total=cfg.steps, initial=self.step, unit="step", dynamic_ncols=True,
                          disable=not progress, mininterval=0.5, smoothing=0.1)
@@ -174,12 +181,13 @@ class Run:
 
         Call it where no update is half done; ``extra_state`` is called only when a checkpoint
         is written."""
+        self._extra_state = extra_state
         self.step += int(steps)
         self.iteration += 1
         self._progress(int(steps))
         if self.step >= self._next_log or self.done:
             self._next_log = self._after(self.step, self.cfg.log_every)
-            self.log(self._flush())
+            self.log(self._check_finite(self._flush()))
         if self.step >= self._next_eval:
             self._next_eval = self._after(self.step, self.cfg.eval.every)
             self.evaluate()
@@ -214,6 +222,14 @@ class Run:
         tensors = {k: v for k, v in sums.items() if torch.is_tensor(v)}
         values = dict(zip(tensors, torch.stack([t.float().cpu() for t in tensors.values()]).tolist())) if tensors else {}
         return {**{k: float(v) for k, v in sums.items() if not torch.is_tensor(v)}, **values}
+
+    def _check_finite(self, metrics: dict[str, float]) -> dict[str, float]:
+        """Stop a diverged run with one line (the last good checkpoint stays the latest)."""
+        for name, value in metrics.items():
+            if name.startswith("loss/") and not math.isfinite(value):
+                raise DrivelabError(f"training diverged at step {self.step}: {name} is {value}; the latest checkpoint "
+                                    f"(step {self._last_checkpoint_step}) is the last good one; lower the learning rate")
+        return metrics
 
     def log(self, metrics: Mapping[str, float]) -> None:
         """Log ``metrics`` with the episode means and the perf/* numbers at the current step."""
@@ -267,6 +283,12 @@ class Run:
                 or self.step >= self._last_checkpoint_step + self.cfg.checkpoint_every)
 
     def _save(self, extra_state: ExtraState | None = None, name: str | None = None) -> Path:
+        for module_name, module in self._modules.items():  # never write a diverged network
+            for key, value in module.state_dict().items():
+                if value.is_floating_point() and not torch.isfinite(value).all():
+                    raise DrivelabError(f"training diverged at step {self.step}: '{module_name}' weight {key} is not "
+                                        f"finite; not saved (the latest checkpoint, step {self._last_checkpoint_step}, "
+                                        "is the last good one); lower the learning rate")
         tensors, trainer_state = extra_state() if extra_state is not None else ({}, {})
         state = {"iteration": self.iteration, "numpy_rng": self.rng.bit_generator.state,
                  "config": config_to_dict(self.cfg), "trainer": trainer_state, "best": self._best,
@@ -276,11 +298,44 @@ class Run:
         return save_checkpoint(self.dir, self.step, modules=self._modules, optimizers=self._optimizers,
                                tensors=tensors, state=state, keep=self.cfg.keep_checkpoints, dirname=name)
 
+    def checkpoint_now(self) -> Path | None:
+        """After an interrupt (Ctrl-C, SIGTERM): save the current state unless it is saved already
+        (the networks as after the last update, at the step count of the last full iteration)."""
+        if not self._modules or self.step == self._last_checkpoint_step:
+            return None
+        return self._save(self._extra_state)
+
     def close(self) -> None:
         if self._eval_envs is not None:
             self._eval_envs.close()
         self.pbar.close()
         self.tracker.close()
+        self._lock.close()  # releases the lock
+
+
+def lock_run_dir(run_dir: Path):
+    """An exclusive lock on ``RUN/.lock`` for the lifetime of the returned file: a second writer
+    (a fresh run or a --resume) is refused; a killed process's lock goes with it (flock)."""
+    handle = open(run_dir / ".lock", "a+")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        handle.seek(0)
+        owner = handle.read().strip() or "?"
+        handle.close()
+        raise DrivelabError(f"run directory {run_dir} is in use by another drivelab process (pid {owner})") from None
+    handle.seek(0)
+    handle.truncate()
+    handle.write(str(os.getpid()))
+    handle.flush()
+    return handle
+
+
+def remove_stale_temporaries(run_dir: Path) -> None:
+    """Checkpoint directories half-written by a killed process (``checkpoints/.tmp_*``): with the
+    lock held, none of them can still be in use."""
+    for tmp in (run_dir / "checkpoints").glob(".tmp_*"):
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def eval_env_config(cfg: TrainConfig) -> EnvConfig:

@@ -96,15 +96,18 @@ class Tracker:
         self._csv = csv.writer(self._csv_file)
         if new_file:
             self._csv.writerow(["step", "time", "name", "value"])
-        self.tb = SummaryWriter(str(self.run_dir / "tb"), purge_step=resume_step)
+        # purge what was logged after the checkpoint (the checkpoint's own step stays, as in the CSV)
+        self.tb = SummaryWriter(str(self.run_dir / "tb"), purge_step=None if resume_step is None else resume_step + 1)
         self.mlflow = None
         if cfg.track.mlflow:
             self._start_mlflow(cfg.track, config_to_dict(cfg))
 
     def _truncate_csv(self, step: int) -> None:
+        """Keep the header and the rows up to ``step``; a run killed mid-write may have left an
+        empty file or a torn last line, which are dropped."""
         with open(self.csv_path, newline="") as f:
             rows = list(csv.reader(f))
-        kept = [rows[0]] + [r for r in rows[1:] if r and int(r[0]) <= step]
+        kept = [["step", "time", "name", "value"]] + [r for r in rows[1:] if len(r) == 4 and r[0].isdigit() and int(r[0]) <= step]
         tmp = self.csv_path.with_suffix(".tmp")
         with open(tmp, "w", newline="") as f:
             csv.writer(f).writerows(kept)

@@ -9,7 +9,9 @@ from __future__ import annotations
 import copy
 import difflib
 import functools
+import multiprocessing
 import os
+import signal
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -50,6 +52,9 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
     :mod:`drivelab.baselines`; a module-level class, so vector envs can pickle it).
     """
     _check_id(cfg.id)
+    if multiprocessing.parent_process() is not None:
+        # In an env worker, Ctrl-C is the trainer's to handle: it closes the workers cleanly.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     kwargs = cfg.kwargs or {}
     if render_mode is not None:  # pygame-drawn frames (CartPole, MetaDrive's top-down) need no display
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
