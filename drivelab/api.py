@@ -86,7 +86,12 @@ def train(algo: str | TrainConfig, env: str | Mapping[str, Any] | None = None, *
     elif (Path(cfg.run_dir) / "checkpoints").exists():
         raise DrivelabError(f"run directory {cfg.run_dir} already holds a run; use --resume {cfg.run_dir} or another --run-dir")
     # Fail on a bad env id, env kwargs or an unsupported action space before a run directory exists.
-    spec.build_policy(cfg, *env_spaces(cfg.env))
+    obs_space, act_space = env_spaces(cfg.env)
+    try:
+        spec.build_policy(cfg, obs_space, act_space)
+    except RuntimeError as exc:  # e.g. an image cropped smaller than the CNN's kernels
+        raise DrivelabError(f"the {cfg.algo} network does not fit the observation space {obs_space}: "
+                            f"{str(exc).strip().splitlines()[0]}") from None
     run = Run(cfg, resume_from=checkpoint, progress=progress)
     try:
         spec.train(cfg, run)

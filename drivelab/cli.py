@@ -108,7 +108,7 @@ def _eval_parser(sub) -> None:
 
 
 def build_parser(train_epilog: str | None = None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="drivelab", description="Reinforcement learning for driving simulators.")
+    parser = OneLineErrors(prog="drivelab", description="Reinforcement learning for driving simulators.")
     parser.add_argument("--version", action="version", version=f"drivelab {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     _train_parser(sub, train_epilog)
@@ -364,6 +364,16 @@ def cmd_envs() -> int:
     print("\n".join([*metadrive_ids(), *TASKS]))
     print("(and any Gymnasium id: CartPole-v1, LunarLander-v3, CarRacing-v3, ...)")
     return 0
+
+
+class OneLineErrors(argparse.ArgumentParser):
+    """argparse, but a usage error is one line (``drivelab: error: ...``, exit 2) like every other
+    bad input; ``--help`` still shows the usage."""
+
+    def error(self, message: str) -> None:
+        print(f"drivelab: error: {self.prog.removeprefix('drivelab ')}: {message}".replace(": drivelab:", ":"),
+              file=sys.stderr)
+        sys.exit(2)
 
 
 def _terminate(signum, frame) -> None:

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
+import os
 from dataclasses import dataclass, field
 from collections.abc import Mapping
 from pathlib import Path
@@ -48,6 +50,12 @@ class EnvConfig:
     obs_filters: list[Any] = field(default_factory=list)
     # keyword overrides for gym.make, e.g. MetaDrive's {num_scenarios: 10, traffic_density: 0.2}
     kwargs: dict[str, Any] = field(default_factory=dict)
+    # Subprocess envs: a worker that raises, dies or answers no step/reset within step_timeout
+    # seconds is restarted (its episode ends as truncated); more than max_restarts restarts within
+    # restart_window vector steps stop the run with the env's error.
+    step_timeout: float | None = 300.0
+    max_restarts: int = 3
+    restart_window: int = 10_000
 
     def validate(self, where: str = "env") -> None:
         """Check every field once, before anything is built (the env factory trusts the result)."""
@@ -56,6 +64,10 @@ class EnvConfig:
 
         if self.num_envs < 1:
             raise DrivelabError(f"config field '{where}.num_envs' must be >= 1, got {self.num_envs}")
+        if self.step_timeout is not None and not self.step_timeout > 0:
+            raise DrivelabError(f"config field '{where}.step_timeout' must be > 0 seconds, got {self.step_timeout}")
+        if self.max_restarts < 0 or self.restart_window < 1:
+            raise DrivelabError(f"config fields '{where}.max_restarts' (>= 0) and '{where}.restart_window' (>= 1) are out of range")
         if self.vectorization not in ("auto", "sync", "async"):
             raise DrivelabError(f"config field '{where}.vectorization' must be auto, sync or async, got {self.vectorization!r}")
         if self.action_grid is not None:
@@ -228,6 +240,8 @@ def read_yaml(path: str | Path) -> dict:
         raise DrivelabError(f"config file not found: {path}")
     try:
         data = yaml.safe_load(path.read_text()) or {}
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise DrivelabError(f"config file {path} is not a text YAML file ({type(exc).__name__})") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark else ""
@@ -264,6 +278,8 @@ def parse_config(data: dict, algo_params: Mapping[str, type], where: str = "conf
 
 def _validate(cfg: TrainConfig) -> None:
     checks = [
+        ("seed", 0 <= cfg.seed < 2**63, "must be in [0, 2^63)"),
+        ("eval.seed", 0 <= cfg.eval.seed < 2**63, "must be in [0, 2^63)"),
         ("steps", cfg.steps >= 0, "must be >= 0"),
         ("max_minutes", cfg.max_minutes is None or cfg.max_minutes > 0, "must be > 0"),
         ("torch_threads", cfg.torch_threads >= 1, "must be >= 1"),
@@ -279,9 +295,41 @@ def _validate(cfg: TrainConfig) -> None:
     for name, ok, message in checks:
         if not ok:
             raise DrivelabError(f"config field '{name}' {message}")
+    if cfg.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise DrivelabError(f"config field 'device' is {cfg.device!r}, but this torch build sees no CUDA device; use cpu")
+    if cfg.run_dir is not None:
+        _check_writable(Path(cfg.run_dir))
+    _check_hyperparameters(cfg.algo, cfg.algo_params)
     cfg.env.validate()
     if hasattr(cfg.algo_params, "validate"):
         cfg.algo_params.validate()
+
+
+def _check_hyperparameters(algo: str, params: Any) -> None:
+    """What holds for every algorithm's hyperparameters: finite numbers, positive learning rates
+    and layer widths, discounts in [0, 1]."""
+    for f in dataclasses.fields(params):
+        value, name = getattr(params, f.name), f"{algo}.{f.name}"
+        if isinstance(value, float) and not math.isfinite(value):
+            raise DrivelabError(f"config field '{name}' must be a finite number, got {value}")
+        if (f.name == "lr" or f.name.endswith("_lr")) and value <= 0:
+            raise DrivelabError(f"config field '{name}' (a learning rate) must be > 0, got {value}")
+        if f.name == "hidden" and (not value or any(width < 1 for width in value)):
+            raise DrivelabError(f"config field '{name}' must list layer widths >= 1, got {value}")
+        if f.name in ("gamma", "gae_lambda") and not 0 <= value <= 1:
+            raise DrivelabError(f"config field '{name}' must be in [0, 1], got {value}")
+
+
+def _check_writable(run_dir: Path) -> None:
+    """The run directory can be created and written (checked before anything is written)."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise DrivelabError(f"config field 'run_dir': {run_dir} exists and is not a directory")
+    existing = next((p for p in [run_dir, *run_dir.resolve().parents] if p.exists()), None)
+    if existing is not None and not os.access(existing, os.W_OK):
+        raise DrivelabError(f"config field 'run_dir': {existing} is not writable")
 
 
 def config_to_dict(cfg: TrainConfig) -> dict:

@@ -83,7 +83,7 @@ class ReplayCollector:
     """
 
     def __init__(self, env_cfg: EnvConfig, hp: OffPolicyParams, run: Run, seed: int):
-        self.envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED)
+        self.envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, on_restart=run.note_env_restart)
         self.num_envs = self.envs.num_envs
         self.obs_space, self.act_space = self.envs.single_observation_space, self.envs.single_action_space
         self.buffer = ReplayBuffer(hp.buffer_size, self.obs_space, self.act_space, run.device)

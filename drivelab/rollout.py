@@ -20,7 +20,7 @@ from typing import NamedTuple
 import gymnasium as gym
 import numpy as np
 import torch
-from gymnasium.vector import AsyncVectorEnv, AutoresetMode
+from gymnasium.vector import AutoresetMode
 
 from drivelab.config import EnvConfig
 from drivelab.envs import make_vector_env
@@ -105,7 +105,7 @@ class RolloutCollector:
 
     def __init__(self, env_cfg: EnvConfig, run: Run, *, num_steps: int, gamma: float, gae_lambda: float,
                  scale_rewards: bool):
-        self.envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.SAME_STEP)
+        self.envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.SAME_STEP, on_restart=run.note_env_restart)
         self.run, self.gamma, self.gae_lambda = run, gamma, gae_lambda
         n = self.envs.num_envs
         self.obs_space, self.act_space = self.envs.single_observation_space, self.envs.single_action_space
@@ -157,13 +157,13 @@ class RolloutCollector:
         return buf.batch(self.gamma, self.gae_lambda)
 
     def _send(self, actions: np.ndarray) -> None:
-        if isinstance(self.envs, AsyncVectorEnv):
+        if hasattr(self.envs, "step_async"):  # subprocess envs
             self.envs.step_async(actions)
         else:
             self._pending = actions
 
     def _receive(self) -> tuple:
-        if isinstance(self.envs, AsyncVectorEnv):
+        if hasattr(self.envs, "step_async"):
             return self.envs.step_wait()
         return self.envs.step(self._pending)
 

@@ -132,6 +132,7 @@ class Run:
         self._policy: torch.nn.Module | None = None
         self._eval_envs = None
         self._extra_state: ExtraState | None = None
+        self.env_restarts = 0
         self.tracker = Tracker(self.dir, cfg, resume_step=self.step if resume_from else None)
         self.pbar = tqdm(total=cfg.steps, initial=self.step, unit="step", dynamic_ncols=True,
                          disable=not progress, mininterval=0.5, smoothing=0.1)
@@ -158,6 +159,11 @@ class Run:
             return self._resume_from
         self._save()
         return None
+
+    def note_env_restart(self, total: int) -> None:
+        """An env worker was restarted (drivelab.envs.supervised): logged as ``env/restarts``."""
+        self.env_restarts += 1
+        self.tracker.log(self.step, {"env/restarts": self.env_restarts})
 
     def reset_seeds(self, mask: np.ndarray) -> list[int | None]:
         """Fresh seeds for the envs where ``mask`` is True (None elsewhere), for ``VectorEnv.reset``."""
@@ -245,7 +251,7 @@ class Run:
         spec = self.cfg.eval
         if self._eval_envs is None:
             self._eval_envs = make_vector_env(eval_env_config(self.cfg), num_envs=min(spec.num_envs, spec.episodes),
-                                              autoreset_mode=AutoresetMode.DISABLED)
+                                              autoreset_mode=AutoresetMode.DISABLED, on_restart=self.note_env_restart)
         self._policy.eval()
         summary = run_episodes(self._eval_envs, self._policy, spec.episodes, seed=spec.seed,
                                device=self.device).summary()

@@ -102,3 +102,116 @@ def test_divergence_stops_the_run_and_saves_no_non_finite_weights(tmp_path, run_
     for checkpoint in list_checkpoints(tmp_path / "d"):
         tensors = load_file(str(checkpoint / "tensors.safetensors"))
         assert all(torch.isfinite(t).all() for t in tensors.values() if t.is_floating_point())
+
+
+# ---- bad input, generated: every case must end with exit code 2, one line, no traceback, and
+# nothing written on disk (the run directory is not created)
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_text = st.text(alphabet="abcxyz-_!@ ", min_size=1, max_size=8)
+BAD_VALUES = {
+    "--seed": st.one_of(st.integers(max_value=-1), st.integers(min_value=2**63, max_value=2**80), _text),
+    "--steps": st.one_of(st.integers(max_value=-1), _text),
+    "--num-envs": st.one_of(st.integers(max_value=0), _text),
+    "--ppo.lr": st.one_of(st.floats(max_value=0.0, allow_nan=False), st.just("inf"), st.just(".nan"), _text),
+    "--ppo.gamma": st.one_of(st.floats(min_value=1.001, max_value=1e9), st.floats(max_value=-0.001, min_value=-1e9)),
+    "--ppo.hidden": st.one_of(st.lists(st.integers(max_value=0), min_size=1, max_size=3).map(str), st.just("[]")),
+    "--ppo.num_minibatches": st.integers(max_value=0),
+    "--ppo.clip_vloss": _text,
+    "--env": _text.map(lambda t: f"No{t}Env-v9"),
+    "--env.num_envs": st.integers(max_value=0),
+    "--env.action_grid": st.one_of(_text, st.just("0x3"), st.just("3x")),
+    "--env.vectorization": _text,
+    "--env.kwargs.no_such_option": st.integers(),
+    "--eval.every": st.integers(max_value=-1),
+    "--eval.episodes": st.integers(max_value=0),
+    "--device": st.one_of(st.just("cuda"), st.just("cuda:3"), _text),
+    "--log_every": st.integers(max_value=0),
+    "--checkpoint_every": st.integers(max_value=0),
+    "--max_minutes": st.floats(max_value=0.0, allow_nan=False),
+    "--torch_threads": st.integers(max_value=0),
+    "--algo": _text.filter(lambda t: t not in ("ppo", "a2c", "sac", "td3", "ddpg", "grpo", "reinforce")),
+}
+UNKNOWN = st.builds(lambda section, name: f"--{section}.{name}", st.sampled_from(["ppo", "env", "eval", "track"]),
+                    st.text(alphabet="qwzjk", min_size=3, max_size=8))
+CONFIG_FILES = st.sampled_from([b"\x00\xff\xfe binary", b"algo: [unclosed", b"- just\n- a list\n", b"ppo: 3\nalgo: ppo\n",
+                                b"algo: ppo\nenv: {id: CartPole-v1, nonsense: 1}\n"])
+
+
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(case=st.one_of(st.sampled_from(sorted(BAD_VALUES)).flatmap(lambda flag: st.tuples(st.just(flag), BAD_VALUES[flag])),
+                      st.tuples(UNKNOWN, st.just("1")),
+                      st.tuples(st.just("--config"), CONFIG_FILES),
+                      st.tuples(st.just("--run-dir"), st.just("a-file"))))
+def test_generated_bad_input_is_one_line_and_writes_nothing(case, tmp_path_factory, capsys):
+    from drivelab.cli import main
+
+    tmp = tmp_path_factory.mktemp("fuzz")
+    flag, value = case
+    run_dir = tmp / "run"
+    args = ["train", "--algo", "ppo", "--env", "CartPole-v1", "--steps", "1", "--no-progress", "--run-dir", str(run_dir)]
+    if flag == "--config":
+        (tmp / "bad.yaml").write_bytes(value)
+        args += ["--config", str(tmp / "bad.yaml")]
+    elif flag == "--run-dir":
+        (tmp / "a-file").write_text("not a directory")
+        args[-1] = str(tmp / "a-file")
+    else:
+        args += [flag, str(value)]
+    with pytest.raises(SystemExit) as exit_info:
+        main(args)
+    captured = capsys.readouterr()
+    assert exit_info.value.code == 2, (args, captured.err)
+    lines = [line for line in captured.err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("drivelab: error:") and "Traceback" not in captured.err, (args, captured.err)
+    assert not run_dir.exists(), (args, "the run directory was created")
+
+
+@pytest.mark.parametrize("fail", ["raise", "die", "hang"])
+def test_a_crashed_or_hung_env_worker_is_restarted_and_the_run_completes(fail, tmp_path):
+    from drivelab.api import build_config, train
+
+    marker = tmp_path / "failed"
+    cfg = build_config({"algo": "ppo", "steps": 1024, "seed": 0, "run_dir": str(tmp_path / "run"),
+                        "env": {"id": "drivelab/Flaky-v0", "num_envs": 2, "vectorization": "async", "step_timeout": 5,
+                                "kwargs": {"fail": fail, "at_step": 100, "marker": str(marker)}},
+                        "ppo": {"num_steps": 128}})
+    train(cfg, progress=False)
+    assert marker.read_text() == fail   # it did fail
+    with open(tmp_path / "run" / "metrics.csv") as f:
+        rows = [line.split(",") for line in f.read().splitlines()[1:]]
+    assert ["env/restarts", "1"] in [[r[2], r[3]] for r in rows]
+    assert int(list_checkpoints(tmp_path / "run")[-1].name.split("_")[-1]) >= 1024
+
+
+def test_an_env_that_keeps_failing_stops_the_run_with_its_error(tmp_path):
+    from drivelab.api import build_config, train
+    from drivelab.envs.supervised import SupervisedVectorEnv
+    from drivelab.errors import DrivelabError
+
+    def broken():
+        raise RuntimeError("no simulator today")
+
+    class Stub:
+        num_envs, metadata = 1, {}
+
+        def __init__(self):
+            self.closed = False
+
+        def reset_async(self, seed=None, options=None):
+            broken()
+
+        def reset_wait(self, timeout=None):
+            broken()
+
+        def reset(self, seed=None, options=None):
+            broken()
+
+        def close(self, **kwargs):
+            self.closed = True
+
+    envs = SupervisedVectorEnv(Stub, step_timeout=1, max_restarts=0, restart_window=10)
+    with pytest.raises(DrivelabError, match="no simulator today"):
+        envs.reset(seed=[0])

@@ -226,7 +226,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
         raise DrivelabError(
             f"config field 'env.num_envs' ({cfg.env.num_envs}) must be a multiple of 'grpo.group_size' ({hp.group_size})"
         )
-    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED)
+    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED, on_restart=run.note_env_restart)
     obs_space, act_space = envs.single_observation_space, envs.single_action_space
     agent = build_policy(cfg, obs_space, act_space).to(run.device)
     optimizer = torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)

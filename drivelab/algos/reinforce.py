@@ -144,7 +144,7 @@ def update(policy: Policy, optimizer: torch.optim.Optimizer, batch: EpisodeBatch
 
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED)
+    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED, on_restart=run.note_env_restart)
     obs_space, act_space = envs.single_observation_space, envs.single_action_space
     policy = build_policy(cfg, obs_space, act_space).to(run.device)
     optimizer = torch.optim.Adam(policy.parameters(), lr=hp.lr)

@@ -21,6 +21,7 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, Vecto
 from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs
 from drivelab.envs.filters import apply_filters
 from drivelab.envs.rewards import RewardShaping
+from drivelab.envs.supervised import SupervisedVectorEnv
 from drivelab.envs.wrappers import DifferentialDrive, DiscreteActionGrid, FixedThrottle, parse_grid
 from drivelab.errors import DrivelabError
 
@@ -104,7 +105,8 @@ def env_spaces(cfg: EnvConfig, wrapper: Callable[[gym.Env], gym.Env] | None = No
 
 def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
                     autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP,
-                    render_mode: str | None = None, wrapper: Callable[[gym.Env], gym.Env] | None = None) -> VectorEnv:
+                    render_mode: str | None = None, wrapper: Callable[[gym.Env], gym.Env] | None = None,
+                    on_restart: Callable[[int], None] | None = None) -> VectorEnv:
     """Build ``num_envs`` (default ``cfg.num_envs``) copies of the env as a Gymnasium vector env.
 
     ``cfg.vectorization`` picks the backend: ``"sync"`` steps the envs in this process (best for
@@ -114,6 +116,8 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
 
     ``autoreset_mode`` is passed through; each trainer chooses it deliberately (Gymnasium 1.x
     defaults to NEXT_STEP: the step after an episode ends only resets and ignores its action).
+    Subprocess envs are supervised (:mod:`drivelab.envs.supervised`): a worker that raises, dies
+    or hangs longer than ``cfg.step_timeout`` is restarted; ``on_restart(total)`` hears of it.
     """
     num_envs = cfg.num_envs if num_envs is None else num_envs
     if num_envs < 1:
@@ -129,5 +133,6 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
     if mode == "sync":
         return SyncVectorEnv(fns, autoreset_mode=autoreset_mode)
     if mode == "async":
-        return AsyncVectorEnv(fns, context="spawn", autoreset_mode=autoreset_mode)
+        make = functools.partial(AsyncVectorEnv, fns, context="spawn", autoreset_mode=autoreset_mode)
+        return SupervisedVectorEnv(make, cfg.step_timeout, cfg.max_restarts, cfg.restart_window, on_restart)
     raise DrivelabError(f"config field 'env.vectorization' must be auto, sync or async, got {mode!r}")

@@ -122,6 +122,10 @@ class MetaDriveGym(gym.Env):
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
         merged = {**DEFAULTS, **(config or {}), **overrides}
+        for key, low in (("horizon", 1), ("num_scenarios", 1), ("start_seed", 0)):
+            value = merged.get(key)
+            if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < low):
+                raise DrivelabError(f"MetaDrive config '{key}' must be an integer >= {low}, got {value!r}")
         if observation == "topdown":
             merged = {"norm_pixel": False, **merged}  # uint8 images: 4x smaller, the CNN scales them
         elif observation != "state":

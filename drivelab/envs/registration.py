@@ -66,6 +66,7 @@ TASKS = {
     "drivelab/MetaDriveTopDown-v0": (METADRIVE_ENTRY_POINT,
                                      {"observation": "topdown", "start_seed": 1000, "num_scenarios": 100}),
     "drivelab/DuckietownLaneFollow-v0": (DUCKIETOWN_ENTRY_POINT, {}),
+    "drivelab/Flaky-v0": ("drivelab.envs.testing:FlakyEnv", {}),   # fails on purpose (tests)
 }
 
 

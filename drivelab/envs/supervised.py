@@ -1,0 +1,123 @@
+"""Subprocess envs that survive their simulator: a worker that raises, dies or stops answering is
+restarted instead of ending the run.
+
+Simulators crash (MetaDrive's physics, a lost display for Duckietown), and a training run of an
+hour should not die with them. :class:`SupervisedVectorEnv` wraps Gymnasium's
+``AsyncVectorEnv``: when a reset or step fails or takes longer than ``step_timeout``, every
+worker is replaced (gymnasium cannot restart one), and the episodes in flight end as
+*truncated* (a time-limit-like cut: the state had a future, nothing terminal happened), with the
+last observation as their final one. More than ``max_restarts`` restarts within
+``restart_window`` vector steps stop the run with the env's own error in one line.
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from collections import deque
+from collections.abc import Callable
+
+import numpy as np
+from gymnasium.vector import AsyncVectorEnv, AutoresetMode, VectorEnv
+
+from drivelab.errors import DrivelabError
+
+
+class SupervisedVectorEnv(VectorEnv):
+    def __init__(self, make: Callable[[], AsyncVectorEnv], step_timeout: float | None, max_restarts: int,
+                 restart_window: int, on_restart: Callable[[int], None] | None = None):
+        self.make, self.step_timeout = make, step_timeout
+        self.max_restarts, self.restart_window, self.on_restart = max_restarts, restart_window, on_restart
+        self.envs = make()
+        for name in ("num_envs", "single_observation_space", "single_action_space", "observation_space",
+                     "action_space", "metadata", "render_mode", "spec"):
+            setattr(self, name, getattr(self.envs, name, None))
+        self.autoreset_mode = self.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
+        self.restarts = 0
+        self._steps = 0
+        self._recent: deque[int] = deque()   # vector step of each recent restart
+        self._last_obs = None
+
+    def reset(self, *, seed=None, options=None):
+        try:
+            self.envs.reset_async(seed=seed, options=options)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                obs, info = self.envs.reset_wait(timeout=self.step_timeout)
+        except Exception as exc:  # noqa: BLE001 - whatever the simulator raised, or a dead/hung worker
+            self._restart(exc)
+            obs, info = self.envs.reset(seed=seed)  # fresh workers: every env starts anew
+        self._last_obs = obs
+        return obs, info
+
+    def step_async(self, actions) -> None:
+        self._pending_error = None
+        try:
+            self.envs.step_async(actions)
+        except Exception as exc:  # noqa: BLE001
+            self._pending_error = exc
+
+    def step_wait(self):
+        self._steps += 1
+        try:
+            if self._pending_error is not None:
+                raise self._pending_error
+            with warnings.catch_warnings():  # gymnasium re-prints the worker's traceback; we say it in one line
+                warnings.simplefilter("ignore")
+                result = self.envs.step_wait(timeout=self.step_timeout)
+        except Exception as exc:  # noqa: BLE001
+            return self._cut_episodes(exc)
+        self._last_obs = result[0]
+        return result
+
+    def step(self, actions):
+        self.step_async(actions)
+        return self.step_wait()
+
+    def _cut_episodes(self, exc: BaseException):
+        """Restart every worker; the step ends all episodes in flight as truncated."""
+        self._restart(exc)
+        n = self.num_envs
+        reward, terminated, truncated = np.zeros(n), np.zeros(n, bool), np.ones(n, bool)
+        last = self._last_obs
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:  # the caller expects the next episodes' starts
+            obs, info = self.envs.reset()
+            final = np.empty(n, dtype=object)
+            final[:] = list(last)
+            info = {**info, "final_obs": final, "_final_obs": np.ones(n, bool), "final_info": {},
+                    "_final_info": np.ones(n, bool)}
+            self._last_obs = obs
+            return obs, reward, terminated, truncated, info
+        self.envs.reset()  # the caller resets the ended envs itself (DISABLED) on fresh workers
+        return last, reward, terminated, truncated, {}
+
+    def _restart(self, exc: BaseException) -> None:
+        message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        self._recent.append(self._steps)
+        while self._recent and self._recent[0] < self._steps - self.restart_window:
+            self._recent.popleft()
+        if len(self._recent) > self.max_restarts:
+            self.close(terminate=True)
+            raise DrivelabError(f"the env failed {len(self._recent)} times within {self.restart_window} steps "
+                                f"(env.max_restarts {self.max_restarts}); last error: {type(exc).__name__}: {message}")
+        self.restarts += 1
+        print(f"drivelab: warning: env worker failed ({type(exc).__name__}: {message}); restarting the envs, "
+              "their episodes end as truncated", file=sys.stderr)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                self.envs.close(terminate=True)
+        except Exception:  # noqa: BLE001 - the old workers may be dead already
+            self.envs.closed = True  # nothing left to close; keeps its __del__ from trying again
+        self.envs = self.make()
+        if self.on_restart is not None:
+            self.on_restart(self.restarts)
+
+    def call(self, name: str, *args, **kwargs):
+        return self.envs.call(name, *args, **kwargs)
+
+    def close(self, **kwargs) -> None:
+        try:
+            self.envs.close(**kwargs)
+        except Exception:  # noqa: BLE001 - closing after a failure
+            self.envs.close(terminate=True)

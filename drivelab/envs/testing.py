@@ -1,0 +1,33 @@
+"""An env that fails on purpose, for testing drivelab's supervision of env workers
+(:mod:`drivelab.envs.supervised`) and for checking a setup: ``drivelab/Flaky-v0``.
+
+CartPole whose ``step`` raises, kills its process, or hangs once, at step ``at_step`` of the
+worker's life, the first time it runs with a given ``marker`` file (the file records that the
+failure happened, so the restarted worker behaves).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import gymnasium as gym
+
+
+class FlakyEnv(gym.Wrapper):
+    def __init__(self, fail: str = "raise", at_step: int = 50, marker: str = "", render_mode: str | None = None):
+        super().__init__(gym.make("CartPole-v1", render_mode=render_mode))
+        self.fail, self.at_step, self.marker = fail, at_step, Path(marker) if marker else None
+        self._steps = 0
+
+    def step(self, action):
+        self._steps += 1
+        if self._steps == self.at_step and self.marker is not None and not self.marker.exists():
+            self.marker.write_text(self.fail)
+            if self.fail == "raise":
+                raise RuntimeError("the simulator crashed (on purpose)")
+            if self.fail == "die":
+                os._exit(1)
+            time.sleep(3600)  # hang
+        return self.env.step(action)
