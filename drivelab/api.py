@@ -28,7 +28,7 @@ from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 from drivelab.algos import ALGORITHMS, AlgoSpec
 from drivelab.baselines import baseline
-from drivelab.checkpoint import Checkpoint, checkpoint_step, load_checkpoint, restore
+from drivelab.checkpoint import Checkpoint, checkpoint_step, list_checkpoints, load_checkpoint, restore
 from drivelab.config import EnvConfig, TrainConfig, parse_config, read_yaml, resolve_config_file, set_dotted
 from drivelab.envs import env_spaces, make_vector_env
 from drivelab.errors import DrivelabError
@@ -75,6 +75,8 @@ def train(algo: str | TrainConfig, env: str | Mapping[str, Any] | None = None, *
     if cfg.run_dir is None:
         cfg.run_dir = default_run_dir(cfg)
     checkpoint = None
+    if resume and not list_checkpoints(cfg.run_dir):
+        resume = False  # killed before its first checkpoint: nothing was trained, start it afresh
     if resume:
         checkpoint = load_checkpoint(cfg.run_dir)
         if not isinstance(checkpoint.state.get("numpy_rng"), dict):

@@ -97,12 +97,16 @@ def save_checkpoint(run_dir: str | Path, step: int, *, modules: dict[str, nn.Mod
     final = root / (dirname or f"step_{step:012d}")
     tmp = root / f".tmp_{final.name}_{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    save_file(flat, str(tmp / "tensors.safetensors"))
-    with open(tmp / "state.json", "w") as f:
-        json.dump(full_state, f, indent=1)
-        f.flush()
-        os.fsync(f.fileno())
+    try:
+        tmp.mkdir()
+        save_file(flat, str(tmp / "tensors.safetensors"))
+        with open(tmp / "state.json", "w") as f:
+            json.dump(full_state, f, indent=1)
+            f.flush()
+            os.fsync(f.fileno())
+    except Exception as exc:  # noqa: BLE001 - a full disk, a lost mount: the previous checkpoint stays the latest
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise DrivelabError(f"could not write checkpoint {final}: {str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__}") from None
     if final.exists():
         shutil.rmtree(final)
     os.replace(tmp, final)

@@ -306,6 +306,8 @@ def _validate(cfg: TrainConfig) -> None:
     cfg.env.validate()
     if hasattr(cfg.algo_params, "validate"):
         cfg.algo_params.validate()
+    if hasattr(cfg.algo_params, "validate_env"):  # constraints between the algorithm and the env
+        cfg.algo_params.validate_env(cfg.env)
 
 
 def _check_hyperparameters(algo: str, params: Any) -> None:

@@ -215,3 +215,26 @@ def test_an_env_that_keeps_failing_stops_the_run_with_its_error(tmp_path):
     envs = SupervisedVectorEnv(Stub, step_timeout=1, max_restarts=0, restart_window=10)
     with pytest.raises(DrivelabError, match="no simulator today"):
         envs.reset(seed=[0])
+
+
+def test_kill_9_at_random_moments_never_leaves_a_run_that_cannot_resume(tmp_path):
+    """SIGKILL cannot be caught: 20 kills at random moments (before the first log, during
+    checkpoint writes, ...) of one run; each time `--resume` must work and leave no temp dirs."""
+    import random
+
+    rng = random.Random(0)
+    run_dir = tmp_path / "run"
+    args = [sys.executable, "-m", "drivelab", "train", "--no-progress"]
+    first = [*args, "--algo", "ppo", "--env", "CartPole-v1", "--num-envs", "2", "--steps", "100000000",
+             "--checkpoint_every", "512", "--ppo.num_steps", "128", "--run-dir", str(run_dir)]
+    for kill in range(20):
+        cmd = first if kill == 0 else [*args, "--resume", str(run_dir), "--steps", "100000000"]
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        time.sleep(rng.uniform(0.5, 4.0))
+        proc.kill()
+        _, stderr = proc.communicate(timeout=30)
+        assert "Traceback" not in stderr, stderr
+    done = subprocess.run([*args, "--resume", str(run_dir), "--steps", "5000"], capture_output=True, text=True, timeout=120)
+    step = max((int(p.name.split("_")[-1]) for p in list_checkpoints(run_dir)), default=0)
+    assert done.returncode == 0 or (step >= 5000 and "already at step" in done.stderr), done.stderr
+    assert not list((run_dir / "checkpoints").glob(".tmp_*"))

@@ -40,7 +40,7 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from drivelab.config import TrainConfig
+from drivelab.config import EnvConfig, TrainConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
 from drivelab.losses import approx_kl, clipped_surrogate_loss
@@ -72,6 +72,11 @@ class Params(PolicyNetParams):
             raise DrivelabError("config field 'grpo.group_size' must be >= 2 (advantages compare members of a group)")
         if self.advantage not in ("return", "reward_to_go"):
             raise DrivelabError(f"config field 'grpo.advantage' must be return or reward_to_go, got {self.advantage!r}")
+
+    def validate_env(self, env: EnvConfig) -> None:
+        if env.num_envs % self.group_size:
+            raise DrivelabError(
+                f"config field 'env.num_envs' ({env.num_envs}) must be a multiple of 'grpo.group_size' ({self.group_size})")
 
 
 class GroupBatch(NamedTuple):
@@ -222,10 +227,6 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: GroupBat
 
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    if cfg.env.num_envs % hp.group_size:
-        raise DrivelabError(
-            f"config field 'env.num_envs' ({cfg.env.num_envs}) must be a multiple of 'grpo.group_size' ({hp.group_size})"
-        )
     envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED, on_restart=run.note_env_restart)
     obs_space, act_space = envs.single_observation_space, envs.single_action_space
     agent = build_policy(cfg, obs_space, act_space).to(run.device)
