@@ -317,7 +317,7 @@ def _check_hyperparameters(algo: str, params: Any) -> None:
         value, name = getattr(params, f.name), f"{algo}.{f.name}"
         if isinstance(value, float) and not math.isfinite(value):
             raise DrivelabError(f"config field '{name}' must be a finite number, got {value}")
-        if (f.name == "lr" or f.name.endswith("_lr")) and value <= 0:
+        if (f.name == "lr" or f.name.endswith("_lr")) and not isinstance(value, bool) and value <= 0:
             raise DrivelabError(f"config field '{name}' (a learning rate) must be > 0, got {value}")
         if f.name == "hidden" and (not value or any(width < 1 for width in value)):
             raise DrivelabError(f"config field '{name}' must list layer widths >= 1, got {value}")
