@@ -85,7 +85,7 @@ def train(algo: str | TrainConfig, env: str | Mapping[str, Any] | None = None, *
             raise DrivelabError(
                 f"run {cfg.run_dir} is already at step {checkpoint.step} >= steps {cfg.steps}; pass a larger --steps to continue"
             )
-    elif (Path(cfg.run_dir) / "checkpoints").exists():
+    elif list_checkpoints(cfg.run_dir):
         raise DrivelabError(f"run directory {cfg.run_dir} already holds a run; use --resume {cfg.run_dir} or another --run-dir")
     # Fail on a bad env id, env kwargs or an unsupported action space before a run directory exists.
     obs_space, act_space = env_spaces(cfg.env)
