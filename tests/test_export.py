@@ -81,3 +81,12 @@ def test_the_action_grid_is_inside_the_deployed_policy():
                               EnvConfig(id="MetaDrive-validation-v0", fixed_throttle=0.3))
     out = throttle(obs)
     assert out.shape == (50, 2) and torch.all(out[:, 1] == 0.3)
+
+
+@pytest.mark.parametrize("algo, env", [("reinforce", "CartPole-v1"), ("a2c", "CartPole-v1"), ("ppo", "CartPole-v1"),
+                                       ("grpo", "CartPole-v1"), ("ddpg", "Pendulum-v1"), ("td3", "Pendulum-v1"),
+                                       ("sac", "Pendulum-v1")])
+def test_every_algorithm_runs_with_its_defaults(algo, env, tmp_path):
+    result = drivelab.train(algo, env, steps=64, run_dir=tmp_path / algo, progress=False)
+    assert result.metrics["perf/steps_per_s"] > 0 and drivelab.load(result.run_dir).act(
+        drivelab.make_env(env).observation_space.sample()) is not None

@@ -2,6 +2,7 @@
 a diverged run stops with one line and never saves non-finite weights."""
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -20,26 +21,30 @@ def _one_line(stderr: str) -> str:
     return lines[0]
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_a_signal_stops_the_run_with_a_checkpoint_that_resumes(sig, tmp_path):
+@pytest.mark.parametrize("sig, env", [(signal.SIGTERM, "CartPole-v1"), (signal.SIGINT, "CartPole-v1"),
+                                      (signal.SIGINT, "MetaDrive-10env-v0")])
+def test_a_signal_stops_the_run_with_a_checkpoint_that_resumes(sig, env, tmp_path):
     run_dir = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, *TRAIN, "--steps", "100000000", "--run-dir", str(run_dir)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cmd = [sys.executable, *TRAIN, "--steps", "100000000", "--run-dir", str(run_dir), "--env", env]
+    if env.startswith("MetaDrive"):  # short episodes and rollouts, so a checkpointable state comes soon
+        cmd += ["--env.kwargs.horizon", "50", "--ppo.num_steps", "64"]
+    # a process group of its own, as in a terminal: Ctrl-C reaches the env workers too
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.time() + 120
     while not (run_dir / "metrics.csv").is_file() or (run_dir / "metrics.csv").stat().st_size < 500:
         assert time.time() < deadline and proc.poll() is None
         time.sleep(0.2)
     started = time.time()
-    proc.send_signal(sig)
+    os.killpg(proc.pid, sig)
     _, stderr = proc.communicate(timeout=30)
     assert time.time() - started < 10 and proc.returncode == 130
     assert "--resume" in _one_line(stderr)
     step = int(list_checkpoints(run_dir)[-1].name.split("_")[-1])
     assert step > 0 and not list((run_dir / "checkpoints").glob(".tmp_*"))
     resumed = subprocess.run([sys.executable, "-m", "drivelab", "train", "--resume", str(run_dir), "--steps",
-                              str(step + 4096), "--no-progress"], capture_output=True, text=True, timeout=120)
+                              str(step + 512), "--no-progress"], capture_output=True, text=True, timeout=180)
     assert resumed.returncode == 0, resumed.stderr
-    assert int(list_checkpoints(run_dir)[-1].name.split("_")[-1]) >= step + 4096
+    assert int(list_checkpoints(run_dir)[-1].name.split("_")[-1]) >= step + 512
 
 
 def test_a_second_writer_is_refused(tmp_path):
@@ -90,6 +95,13 @@ def test_damaged_files_are_skipped_or_refused_in_one_line(tmp_path, run_cli):
     out = run_cli("train", "--resume", run_dir, "--steps", "5000", "--no-progress")
     assert out.returncode == 0, out.stderr
     assert not list((run_dir / "checkpoints").glob(".tmp_*"))
+
+
+def test_nan_rewards_stop_the_run_in_one_line(tmp_path, run_cli):
+    out = run_cli("train", "--algo", "ppo", "--env", "drivelab/Flaky-v0", "--env.kwargs.fail", "nan",
+                  "--env.kwargs.at_step", "100", "--steps", "5000", "--ppo.num_steps", "256", "--run-dir", tmp_path / "n",
+                  "--no-progress")
+    assert out.returncode == 2 and "diverged" in _one_line(out.stderr)
 
 
 def test_divergence_stops_the_run_and_saves_no_non_finite_weights(tmp_path, run_cli):

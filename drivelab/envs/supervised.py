@@ -118,6 +118,8 @@ class SupervisedVectorEnv(VectorEnv):
 
     def close(self, **kwargs) -> None:
         try:
-            self.envs.close(**kwargs)
+            with warnings.catch_warnings():  # closing mid-step after Ctrl-C: gymnasium waits, and warns
+                warnings.simplefilter("ignore")
+                self.envs.close(**kwargs)
         except Exception:  # noqa: BLE001 - closing after a failure
             self.envs.close(terminate=True)

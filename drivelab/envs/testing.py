@@ -3,7 +3,8 @@
 
 CartPole whose ``step`` raises, kills its process, or hangs once, at step ``at_step`` of the
 worker's life, the first time it runs with a given ``marker`` file (the file records that the
-failure happened, so the restarted worker behaves).
+failure happened, so the restarted worker behaves); or, with ``fail="nan"``, whose rewards are
+NaN from ``at_step`` on.
 """
 
 from __future__ import annotations
@@ -23,6 +24,9 @@ class FlakyEnv(gym.Wrapper):
 
     def step(self, action):
         self._steps += 1
+        if self.fail == "nan" and self._steps >= self.at_step:
+            obs, _, terminated, truncated, info = self.env.step(action)
+            return obs, float("nan"), terminated, truncated, info
         if self._steps == self.at_step and self.marker is not None and not self.marker.exists():
             self.marker.write_text(self.fail)
             if self.fail == "raise":
