@@ -41,11 +41,13 @@ def train_run(config: str | None, run_dir: Path, steps: int | None) -> float:
     return time.perf_counter() - started
 
 
-def evaluate_run(run_dir: Path, every: int, heldout: int, train_episodes: int, num_envs: int) -> list[dict]:
-    paths = list_checkpoints(run_dir)
+def evaluate_run(run_dir: Path, every: int, heldout: int, train_episodes: int, num_envs: int,
+                 from_step: int = 0) -> list[dict]:
+    paths = [p for p in list_checkpoints(run_dir) if checkpoint_step(p) >= from_step]
     steps = [checkpoint_step(p) for p in paths]
     # the first checkpoint at or after each multiple of `every` (iterations rarely end on one), and the last
-    chosen = sorted({next(p for p, s in zip(paths, steps) if s >= m) for m in range(0, steps[-1] + 1, every)} | {paths[-1]})
+    chosen = sorted({next(p for p, s in zip(paths, steps) if s >= m) for m in range(from_step, steps[-1] + 1, every)}
+                    | {paths[-1]})
     curve = []
     for path in chosen:
         ckpt = load_checkpoint(path)
@@ -103,12 +105,13 @@ def main() -> None:
     parser.add_argument("--train-episodes", type=int, default=50, help="training scenarios per evaluation")
     parser.add_argument("--baselines", nargs="*", default=["metadrive-expert", "random"])
     parser.add_argument("--num-envs", type=int, default=2, help="evaluation env processes")
+    parser.add_argument("--from-step", type=int, default=0, help="skip checkpoints before this step (1: the initial one)")
     parser.add_argument("--out", help="JSON path (the PNG goes beside it); default RUN/generalization.json")
     args = parser.parse_args()
     run_dir = Path(args.run_dir)
     wall = 0.0 if args.skip_train else train_run(args.config, run_dir, args.steps)
     started = time.perf_counter()
-    curve = evaluate_run(run_dir, args.every, args.heldout, args.train_episodes, args.num_envs)
+    curve = evaluate_run(run_dir, args.every, args.heldout, args.train_episodes, args.num_envs, args.from_step)
     heldout_env = EnvConfig(id=HELDOUT_ENV, num_envs=args.num_envs)
     baselines = {name: evaluate_baseline(name, heldout_env, args.heldout).summary() for name in args.baselines}
     metrics = [row for row in curve if "heldout" in row]
