@@ -131,7 +131,8 @@ def test_metadrive_vector_env_runs_in_subprocesses():
     cfg = EnvConfig(id="MetaDrive-10env-v0", num_envs=2, action_grid="3x3", kwargs={"horizon": 30})
     envs = make_vector_env(cfg, autoreset_mode=AutoresetMode.DISABLED)
     try:
-        assert type(envs).__name__ == "AsyncVectorEnv"
+        # subprocess envs, under drivelab's supervisor (drivelab.envs.supervised)
+        assert type(envs).__name__ == "SupervisedVectorEnv" and type(envs.envs).__name__ == "AsyncVectorEnv"
         obs, _ = envs.reset(seed=[0, 1])
         assert obs.shape == (2, 259)
         obs, reward, terminated, truncated, info = envs.step(np.array([1, 1]))

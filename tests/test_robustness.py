@@ -22,7 +22,7 @@ def _one_line(stderr: str) -> str:
 
 
 @pytest.mark.parametrize("sig, env", [(signal.SIGTERM, "CartPole-v1"), (signal.SIGINT, "CartPole-v1"),
-                                      (signal.SIGINT, "MetaDrive-10env-v0")])
+                                      (signal.SIGINT, "MetaDrive-10env-v0"), (signal.SIGTERM, "MetaDrive-10env-v0")])
 def test_a_signal_stops_the_run_with_a_checkpoint_that_resumes(sig, env, tmp_path):
     run_dir = tmp_path / "run"
     cmd = [sys.executable, *TRAIN, "--steps", "100000000", "--run-dir", str(run_dir), "--env", env]
@@ -85,10 +85,17 @@ def test_damaged_files_are_skipped_or_refused_in_one_line(tmp_path, run_cli):
     out = run_cli("eval", run_dir, "--episodes", "1", "--json")
     assert out.returncode == 0 and "using the newest intact checkpoint" in out.stderr
     assert json.loads(out.stdout.strip().splitlines()[-1])["checkpoint"] == str(older)
-    for bad in ("{}", "[1, 2]", "not json"):
+    state = (older / "state.json").read_text()
+    for bad in ("{}", "[1, 2]", "not json", json.dumps({k: v for k, v in json.loads(state).items() if k != "config"})):
         (older / "state.json").write_text(bad)
         out = run_cli("eval", older, "--episodes", "1")
         assert out.returncode == 2 and str(older / "state.json") in _one_line(out.stderr)
+    (older / "state.json").write_text(state)
+    import pickle
+
+    (older / "tensors.safetensors").write_bytes(pickle.dumps({"weights": [1.0, 2.0]}))  # a pickle in its place
+    out = run_cli("eval", older, "--episodes", "1")
+    assert out.returncode == 2 and str(older / "tensors.safetensors") in _one_line(out.stderr)
     # an emptied metrics.csv (killed before its first flush) and a stale temp checkpoint: resume works
     (run_dir / "metrics.csv").write_text("")
     (run_dir / "checkpoints" / ".tmp_step_000000009999_1").mkdir()
