@@ -401,6 +401,9 @@ def main(argv: list[str] | None = None) -> None:
             next((a.split("=", 1)[1] for a in argv if a.startswith("--algo=")), None)
     parser = build_parser(train_epilog=algo_help(algo) if algo in ALGORITHMS else None)
     signal.signal(signal.SIGTERM, _terminate)
+    # Ctrl-C stops a run cleanly even when started from a shell that ignores SIGINT for
+    # background jobs (nohup ... &): Python leaves an inherited "ignore" in place otherwise.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     args, unknown = parser.parse_known_args(argv)
     run_dir = getattr(args, "resume", None) or getattr(args, "run_dir", None)
     try:
