@@ -30,13 +30,18 @@ def test_a_signal_stops_the_run_with_a_checkpoint_that_resumes(sig, env, tmp_pat
         cmd += ["--env.kwargs.horizon", "50", "--ppo.num_steps", "64"]
     # a process group of its own, as in a terminal: Ctrl-C reaches the env workers too
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    deadline = time.time() + 120
-    while not (run_dir / "metrics.csv").is_file() or (run_dir / "metrics.csv").stat().st_size < 500:
-        assert time.time() < deadline and proc.poll() is None
-        time.sleep(0.2)
-    started = time.time()
-    os.killpg(proc.pid, sig)
-    _, stderr = proc.communicate(timeout=30)
+    try:
+        deadline = time.time() + 120
+        while not (run_dir / "metrics.csv").is_file() or (run_dir / "metrics.csv").stat().st_size < 500:
+            assert time.time() < deadline and proc.poll() is None
+            time.sleep(0.2)
+        started = time.time()
+        os.killpg(proc.pid, sig)
+        _, stderr = proc.communicate(timeout=30)
+    finally:  # never leave a training process behind, whatever failed
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
     assert time.time() - started < 10 and proc.returncode == 130
     assert "--resume" in _one_line(stderr)
     step = int(list_checkpoints(run_dir)[-1].name.split("_")[-1])
