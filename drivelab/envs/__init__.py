@@ -54,10 +54,9 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
     """
     _check_id(cfg.id)
     if multiprocessing.parent_process() is not None:
-        # In an env worker, Ctrl-C and SIGTERM are the trainer's to handle: it checkpoints and
-        # closes the workers (which also exit when the trainer's pipe closes).
+        # In an env worker, Ctrl-C is the trainer's to handle: it checkpoints and closes the
+        # workers. (SIGTERM stays fatal: the supervisor terminates hung workers with it.)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     kwargs = cfg.kwargs or {}
     if render_mode is not None:  # pygame-drawn frames (CartPole, MetaDrive's top-down) need no display
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
