@@ -94,14 +94,20 @@ def train(algo: str | TrainConfig, env: str | Mapping[str, Any] | None = None, *
     except RuntimeError as exc:  # e.g. an image cropped smaller than the CNN's kernels
         raise DrivelabError(f"the {cfg.algo} network does not fit the observation space {obs_space}: "
                             f"{str(exc).strip().splitlines()[0]}") from None
+    if "ray" in (cfg.env.backend, cfg.eval.backend):
+        from drivelab.envs.ray_backend import connect
+
+        connect(cfg.ray_address)
     run = Run(cfg, resume_from=checkpoint, progress=progress)
+    interrupted = False
     try:
         spec.train(cfg, run)
     except KeyboardInterrupt:  # Ctrl-C, or SIGTERM from a scheduler (the CLI turns it into this)
+        interrupted = True
         run.checkpoint_now()
         raise
     finally:
-        run.close()
+        run.close(interrupted)
     return TrainResult(run.dir, last_metrics(run.dir))
 
 

@@ -4,6 +4,8 @@
     drivelab train --config configs/reinforce_metadrive.yaml --reinforce.lr 0.001 --env.kwargs.num_scenarios 10
     drivelab train --resume runs/cartpole --steps 40000
     drivelab eval runs/cartpole --episodes 10 [--env MetaDrive-validation-v0] [--json]
+    drivelab train --config ppo_metadrive_drive --env.backend ray --ray-address auto
+    drivelab sweep configs/ppo_cartpole.yaml --grid ppo.lr=1e-4,3e-4 --seeds 0-4 --out runs/sweep-lr
 
 Any config field can be set with a dotted flag (``--env.num_envs 4``, ``--reinforce.gamma 0.95``);
 values are read as YAML scalars (``3x3`` stays text, ``[64, 64]`` is a list, ``null`` is None).
@@ -31,7 +33,7 @@ from drivelab.errors import DrivelabError
 
 # Fields that may change when a run is resumed; anything else would change the experiment.
 RESUMABLE_FIELDS = ("steps", "max_minutes", "torch_threads", "checkpoint_every", "keep_checkpoints", "stats_window",
-                    "log_every", "eval", "device", "track")
+                    "log_every", "eval", "device", "track", "ray_address")
 
 
 def parse_value(text: str) -> Any:
@@ -84,6 +86,23 @@ def _train_parser(sub, epilog: str | None = None) -> None:
     p.add_argument("--mlflow", action="store_true", help="also track with MLflow")
     p.add_argument("--mlflow-uri", help="MLflow tracking URI (default: a local store in the run directory)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--ray-address", help="Ray cluster for --env.backend ray / --eval.backend ray: auto (the cluster "
+                                         "on this machine), ray://HOST:10001, HOST:6379 (default: a local Ray instance)")
+
+
+def _sweep_parser(sub) -> None:
+    p = sub.add_parser("sweep", help="run a grid of configs x seeds in parallel on Ray Tune, then tabulate",
+                       description="Every combination of --grid values and --seeds is a normal, resumable drivelab run "
+                                   "in OUT/<setting>-s<seed>; running the sweep again resumes the unfinished ones. "
+                                   "Ends with a table (mean and 95%% CI over seeds of the final metrics) and plots.")
+    p.add_argument("config", help="YAML config file or shipped config name; its optional `sweep:` section holds a grid and seeds")
+    p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2", help="a config field and its values (repeatable)")
+    p.add_argument("--seeds", help="e.g. 0-4 or 0,1,2 (default: the config's sweep.seeds, else 0)")
+    p.add_argument("--steps", type=int, help="env steps per run (overrides the config)")
+    p.add_argument("--out", help="sweep directory (default runs/sweep-<config name>)")
+    p.add_argument("--ray-address", help="Ray cluster to run on (default: a local Ray instance)")
+    p.add_argument("--cpus-per-trial", type=float, default=1.0, help="CPUs Ray reserves for each run")
+    p.add_argument("--max-concurrent", type=int, help="at most this many runs at once (default: as the CPUs allow)")
 
 
 def _eval_parser(sub) -> None:
@@ -132,6 +151,7 @@ def build_parser(train_epilog: str | None = None) -> argparse.ArgumentParser:
     export.add_argument("--format", default="onnx", choices=("onnx", "torchscript"))
     export.add_argument("--out", required=True, help="output directory (policy.onnx or policy.pt, and policy.json)")
     _reward_parser(sub)
+    _sweep_parser(sub)
     return parser
 
 
@@ -162,6 +182,7 @@ def _train_data(args: argparse.Namespace, extra: dict[str, Any]) -> tuple[dict, 
         "algo": args.algo, "env.id": args.env, "steps": args.steps, "seed": args.seed, "run_dir": args.run_dir,
         "env.num_envs": args.num_envs, "env.action_grid": args.actions,
         "track.mlflow": True if args.mlflow else None, "track.mlflow_uri": args.mlflow_uri,
+        "ray_address": args.ray_address,
     }
     overrides = {k: v for k, v in flags.items() if v is not None} | extra
     if args.resume:
@@ -193,6 +214,32 @@ def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
         print("last logged: " + ", ".join(f"{k} {v:.3g}" for k, v in shown))
     print(f"run saved in {run_dir} (config.yaml, metrics.csv, tb/, checkpoints/)")
     print(f"  evaluate: drivelab eval {run_dir} --episodes 10    watch: tensorboard --logdir {run_dir}/tb")
+    return 0
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from drivelab.config import read_yaml, resolve_config_file
+    from drivelab.sweep import format_table, parse_grid, parse_seeds, run_sweep
+
+    path = resolve_config_file(args.config)
+    base = read_yaml(path)
+    section = base.pop("sweep", None) or {}
+    if not isinstance(section, dict) or set(section) - {"grid", "seeds"}:
+        raise DrivelabError(f"config file {path}: the sweep section holds only grid and seeds")
+    grid = {key: list(values) if isinstance(values, list) else [values] for key, values in (section.get("grid") or {}).items()}
+    grid.update(parse_grid(args.grid))
+    seeds = parse_seeds(args.seeds if args.seeds is not None else section.get("seeds", [0]))
+    if args.steps is not None:
+        base["steps"] = args.steps
+    out = Path(args.out or Path("runs") / f"sweep-{path.stem}")
+    summary = run_sweep(base, grid, seeds, out, ray_address=args.ray_address, cpus_per_trial=args.cpus_per_trial,
+                        max_concurrent=args.max_concurrent)
+    print(format_table(summary))
+    print(f"sweep saved in {out} (sweep.json, sweep.md, curves.png{', final.png' if (out / 'final.png').is_file() else ''}, "
+          "one run directory per setting and seed)")
+    if summary.get("failed"):
+        print("failed runs (rerun the same command to resume them):\n  " + "\n  ".join(summary["failed"]), file=sys.stderr)
+        return 1
     return 0
 
 
@@ -351,7 +398,8 @@ def cmd_configs() -> int:
     for name, path in shipped_configs().items():
         data = read_yaml(path)
         env = data.get("env", {}).get("id", "") if isinstance(data.get("env"), dict) else ""
-        print(f"{name:<28}{data.get('algo', '?'):<10}{env:<34}{data.get('steps', '')}")
+        kind = "  (a sweep: drivelab sweep NAME)" if "sweep" in data else ""
+        print(f"{name:<28}{data.get('algo', '?'):<10}{env:<34}{data.get('steps', '')}{kind}")
     print("(drivelab train --config NAME; the files are in drivelab/configs/)")
     return 0
 
@@ -412,7 +460,7 @@ def main(argv: list[str] | None = None) -> None:
         else:
             if unknown:
                 parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-            code = {"eval": cmd_eval, "reward": cmd_reward, "export": cmd_export, "plot": cmd_plot, "report": cmd_report, "configs": lambda a: cmd_configs()}.get(
+            code = {"eval": cmd_eval, "reward": cmd_reward, "export": cmd_export, "plot": cmd_plot, "report": cmd_report, "sweep": cmd_sweep, "configs": lambda a: cmd_configs()}.get(
                 args.command, lambda a: cmd_envs())(args)
     except DrivelabError as exc:
         print(f"drivelab: error: {exc}", file=sys.stderr)

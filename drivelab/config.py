@@ -32,12 +32,21 @@ import yaml
 from drivelab.errors import DrivelabError
 
 
+BACKENDS = ("auto", "sync", "async", "ray")
+
+
 @dataclass
 class EnvConfig:
     id: str = "CartPole-v1"
     num_envs: int = 4
-    # auto | sync | async; auto puts MetaDrive (one engine per process) in subprocesses.
-    vectorization: str = "auto"
+    # Where the envs run: sync (in this process), async (one subprocess each), ray (in Ray actors,
+    # on this machine or a cluster: drivelab.envs.ray_backend), or auto: async for simulators that
+    # allow one instance per process (MetaDrive), sync otherwise. (Formerly `vectorization`.)
+    backend: str = "auto"
+    # Ray backend: envs per actor (stepped together, one remote call per actor and step; MetaDrive
+    # allows 1) and the CPUs Ray reserves for each actor.
+    envs_per_actor: int = 1
+    actor_cpus: float = 1.0
     # "NxM": N steering x M throttle discrete actions over a [steering, throttle] Box action.
     action_grid: str | None = None
     max_steering: float = 0.6
@@ -68,8 +77,17 @@ class EnvConfig:
             raise DrivelabError(f"config field '{where}.step_timeout' must be > 0 seconds, got {self.step_timeout}")
         if self.max_restarts < 0 or self.restart_window < 1:
             raise DrivelabError(f"config fields '{where}.max_restarts' (>= 0) and '{where}.restart_window' (>= 1) are out of range")
-        if self.vectorization not in ("auto", "sync", "async"):
-            raise DrivelabError(f"config field '{where}.vectorization' must be auto, sync or async, got {self.vectorization!r}")
+        if self.backend not in BACKENDS:
+            raise DrivelabError(f"config field '{where}.backend' must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
+        if self.envs_per_actor < 1 or not self.actor_cpus >= 0:
+            raise DrivelabError(f"config fields '{where}.envs_per_actor' (>= 1) and '{where}.actor_cpus' (>= 0) are out of range")
+        from drivelab.envs.registration import needs_own_process, register_envs
+
+        register_envs()
+        if self.backend == "sync" and needs_own_process(self.id):
+            raise DrivelabError(f"config field '{where}.backend': '{self.id}' allows one instance per process; use async, ray or auto")
+        if self.backend == "ray" and self.envs_per_actor > 1 and needs_own_process(self.id):
+            raise DrivelabError(f"config field '{where}.envs_per_actor': '{self.id}' allows one instance per process; use 1")
         if self.action_grid is not None:
             parse_grid(self.action_grid, f"{where}.action_grid")
             if self.fixed_throttle is not None:
@@ -94,6 +112,9 @@ class EvalConfig:
     best_metric: str = "return_mean"
     # On a new best, film one episode: RUN/videos/step_<N>.mp4 (needs the env's rgb_array render).
     video: bool = True
+    # local: the trainer pauses while it evaluates; ray: a Ray actor evaluates a copy of the
+    # policy while training goes on (results are logged at the step they were taken).
+    backend: str = "local"
 
 
 @dataclass
@@ -123,6 +144,9 @@ class TrainConfig:
     # Env steps between metric logs (the last iteration's or the means since the last log).
     log_every: int = 1000
     eval: EvalConfig = field(default_factory=EvalConfig)
+    # The Ray cluster for env.backend / eval.backend ray: None starts a local Ray instance (or
+    # joins $RAY_ADDRESS), "auto" joins the cluster on this machine, "ray://host:10001" a remote one.
+    ray_address: str | None = None
     track: TrackConfig = field(default_factory=TrackConfig)
     # Hyperparameters of `algo`: an instance of that algorithm's dataclass (its section in YAML).
     algo_params: Any = None
@@ -259,6 +283,9 @@ def parse_config(data: dict, algo_params: Mapping[str, type], where: str = "conf
     ``algo``.
     """
     data = dict(data)
+    env = data.get("env")
+    if isinstance(env, dict) and "vectorization" in env:  # configs saved before 0.3 (run dirs, --resume)
+        data["env"] = {("backend" if k == "vectorization" else k): v for k, v in env.items()}
     algo = data.get("algo", TrainConfig.algo)
     if algo not in algo_params:
         close = difflib.get_close_matches(str(algo), list(algo_params), n=1)
@@ -268,6 +295,8 @@ def parse_config(data: dict, algo_params: Mapping[str, type], where: str = "conf
     stray = [name for name in algo_params if name in data]
     if stray:
         raise DrivelabError(f"{where}: section '{stray[0]}' does not apply to algo '{algo}'")
+    if "sweep" in data:
+        raise DrivelabError(f"{where}: this config holds a sweep; run it with `drivelab sweep`")
     if "algo_params" in data:
         raise DrivelabError(f"{where}: unknown field(s) algo_params (use a section named '{algo}')")
     cfg = _from_dict(TrainConfig, data, where)
@@ -290,6 +319,7 @@ def _validate(cfg: TrainConfig) -> None:
         ("eval.every", cfg.eval.every >= 0, "must be >= 0"),
         ("eval.episodes", cfg.eval.episodes >= 1, "must be >= 1"),
         ("eval.num_envs", cfg.eval.num_envs >= 1, "must be >= 1"),
+        ("eval.backend", cfg.eval.backend in ("local", "ray"), "must be local or ray"),
         ("device", cfg.device == "cpu" or cfg.device.startswith("cuda"), "must be cpu or cuda[:N]"),
     ]
     for name, ok, message in checks:

@@ -336,7 +336,7 @@ class OffPolicyAgent(nn.Module):
         self.critic = Critics(feature_dim, act_dim, hidden, act, ensemble=critics)
         self.stochastic = stochastic
         # [-1, 1] -> [low, high]
-        low, high = (torch.as_tensor(b, dtype=torch.float32) for b in (act_space.low, act_space.high))
+        low, high = (torch.tensor(b, dtype=torch.float32) for b in (act_space.low, act_space.high))
         self.register_buffer("action_scale", (high - low) / 2)
         self.register_buffer("action_bias", (high + low) / 2)
 

@@ -23,6 +23,8 @@ Metrics, the same for every algorithm (``metrics.csv``, TensorBoard, MLflow):
   finished training episodes;
 * ``loss/*`` and ``charts/*``: what the algorithm's update returns, averaged since the last log;
 * ``eval/*``: periodic deterministic evaluation (``eval.every``), the same keys as ``drivelab eval``;
+  with ``eval.backend: ray`` a Ray actor evaluates a copy of the policy while training goes on,
+  and its results are logged at the step the copy was taken;
 * ``perf/steps_per_s``: env steps per second of wall time since this process started training;
   ``perf/env_fraction``, ``perf/update_fraction`` and ``perf/other_fraction``: the shares of
   wall time since the last log spent stepping envs, in gradient updates, and in everything
@@ -31,12 +33,14 @@ Metrics, the same for every algorithm (``metrics.csv``, TensorBoard, MLflow):
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import fcntl
 import json
 import math
 import os
 import shutil
+import sys
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -131,6 +135,8 @@ class Run:
         self._optimizers: dict[str, torch.optim.Optimizer] = {}
         self._policy: torch.nn.Module | None = None
         self._eval_envs = None
+        self._eval_worker = None                 # eval.backend ray: the actor ...
+        self._eval_pending = None                # ... and (step, result ref) of the evaluation in flight
         self._extra_state: ExtraState | None = None
         self.env_restarts = 0
         self.tracker = Tracker(self.dir, cfg, resume_step=self.step if resume_from else None)
@@ -194,6 +200,8 @@ class Run:
         if self.step >= self._next_log or self.done:
             self._next_log = self._after(self.step, self.cfg.log_every)
             self.log(self._check_finite(self._flush()))
+        if self._eval_pending is not None:
+            self._take_evaluation(wait=False)
         if self.step >= self._next_eval:
             self._next_eval = self._after(self.step, self.cfg.eval.every)
             self.evaluate()
@@ -247,8 +255,13 @@ class Run:
 
     def evaluate(self) -> dict[str, float]:
         """Deterministic episodes of the registered policy on the evaluation env (``cfg.eval``),
-        logged as ``eval/*``; a new best ``eval.best_metric`` is saved as ``checkpoints/best``."""
+        logged as ``eval/*``; a new best ``eval.best_metric`` is saved as ``checkpoints/best``.
+        With ``eval.backend: ray`` this only starts the evaluation (see :meth:`_submit_evaluation`)
+        and returns {}."""
         spec = self.cfg.eval
+        if spec.backend == "ray":
+            self._submit_evaluation()
+            return {}
         if self._eval_envs is None:
             self._eval_envs = make_vector_env(eval_env_config(self.cfg), num_envs=min(spec.num_envs, spec.episodes),
                                               autoreset_mode=AutoresetMode.DISABLED, on_restart=self.note_env_restart)
@@ -256,16 +269,66 @@ class Run:
         summary = run_episodes(self._eval_envs, self._policy, spec.episodes, seed=spec.seed,
                                device=self.device).summary()
         self._policy.train()
-        self.tracker.log(self.step, {f"eval/{k}": v for k, v in summary.items() if k != "episodes"})
-        # Ties (frequent for rates over few episodes) go to the higher return.
-        score = [summary[spec.best_metric], summary["return_mean"]] if spec.best_metric in summary else None
-        if score is not None and (self._best is None or score > self._best):
-            self._best = score
+        if self._record_evaluation(self.step, summary):
             best = self._save(name="best")
             (best / "eval.json").write_text(json.dumps({"step": self.step, **summary}, indent=1))
             if spec.video:
                 self._film_best()
         return summary
+
+    def _record_evaluation(self, step: int, summary: dict[str, float]) -> bool:
+        """Log an evaluation's ``eval/*`` at ``step``; True when it is a new best (ties, frequent
+        for rates over few episodes, go to the higher return)."""
+        self.tracker.log(step, {f"eval/{k}": v for k, v in summary.items() if k != "episodes"})
+        metric = self.cfg.eval.best_metric
+        score = [summary[metric], summary["return_mean"]] if metric in summary else None
+        if score is None or (self._best is not None and score <= self._best):
+            return False
+        self._best = score
+        return True
+
+    def _submit_evaluation(self) -> None:
+        """Hand a copy of the policy to the evaluation actor and go on training. The state it was
+        taken from is saved as ``checkpoints/.eval_pending``, which becomes ``best`` if it wins."""
+        from drivelab.envs.ray_backend import EvalWorker, import_ray
+
+        ray, spec = import_ray(), self.cfg.eval
+        if self._eval_pending is not None:  # one evaluation at a time: wait for the previous one
+            self._take_evaluation(wait=True)
+        if self._eval_worker is None:
+            self._eval_worker = ray.remote(num_cpus=self.cfg.env.actor_cpus)(EvalWorker).remote(
+                eval_env_config(self.cfg), min(spec.num_envs, spec.episodes))
+        self._save(name=".eval_pending")
+        policy = copy.deepcopy(self._policy).cpu()
+        ref = self._eval_worker.evaluate.remote(policy, spec.episodes, spec.seed, spec.best_metric, self._best, spec.video)
+        self._eval_pending = (self.step, ref)
+
+    def _take_evaluation(self, wait: bool) -> None:
+        """Log the evaluation in flight if it has finished (or, with ``wait``, once it has)."""
+        from drivelab.envs.ray_backend import first_line, import_ray
+
+        ray = import_ray()
+        step, ref = self._eval_pending
+        if not wait and not ray.wait([ref], timeout=0)[0]:
+            return
+        self._eval_pending = None
+        try:
+            summary, video, strip = ray.get(ref)
+        except Exception as exc:  # noqa: BLE001 - the evaluation env failed: training goes on
+            print(f"drivelab: warning: evaluation at step {step} failed ({first_line(exc)})", file=sys.stderr)
+            self._eval_worker = None
+            return
+        root = self.dir / "checkpoints"
+        if not self._record_evaluation(step, summary):
+            return
+        shutil.rmtree(root / "best", ignore_errors=True)
+        os.replace(root / ".eval_pending", root / "best")
+        (root / "best" / "eval.json").write_text(json.dumps({"step": step, **summary}, indent=1))
+        if video is not None:
+            path = self.dir / "videos" / f"step_{step:012d}.mp4"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(video)
+            self.tracker.log_video(step, path, strip)
 
     def _film_best(self) -> None:
         """One evaluation episode of the new best policy as ``RUN/videos/step_<N>.mp4`` (notebook
@@ -311,7 +374,15 @@ class Run:
             return None
         return self._save(self._extra_state)
 
-    def close(self) -> None:
+    def close(self, interrupted: bool = False) -> None:
+        """Release envs, workers, trackers and the lock; the evaluation in flight is waited for
+        (so the last one is logged) unless the run was ``interrupted``."""
+        if self._eval_pending is not None and not interrupted:
+            self._take_evaluation(wait=True)
+        if self._eval_worker is not None:
+            from drivelab.envs.ray_backend import import_ray
+
+            import_ray().kill(self._eval_worker, no_restart=True)
         if self._eval_envs is not None:
             self._eval_envs.close()
         self.pbar.close()
@@ -340,7 +411,7 @@ def lock_run_dir(run_dir: Path):
 def remove_stale_temporaries(run_dir: Path) -> None:
     """Checkpoint directories half-written by a killed process (``checkpoints/.tmp_*``): with the
     lock held, none of them can still be in use."""
-    for tmp in (run_dir / "checkpoints").glob(".tmp_*"):
+    for tmp in [*(run_dir / "checkpoints").glob(".tmp_*"), run_dir / "checkpoints" / ".eval_pending"]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 

@@ -140,7 +140,7 @@ def test_metadrive_vector_env_runs_in_subprocesses():
     finally:
         envs.close()
     with pytest.raises(DrivelabError, match="one instance per process"):
-        make_vector_env(EnvConfig(id="MetaDrive-10env-v0", vectorization="sync"))
+        make_vector_env(EnvConfig(id="MetaDrive-10env-v0", backend="sync"))
 
 
 def test_box2d_and_pygame_coexist_with_metadrive():

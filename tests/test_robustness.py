@@ -148,7 +148,7 @@ BAD_VALUES = {
     "--env": _text.map(lambda t: f"No{t}Env-v9"),
     "--env.num_envs": st.integers(max_value=0),
     "--env.action_grid": st.one_of(_text, st.just("0x3"), st.just("3x")),
-    "--env.vectorization": _text,
+    "--env.backend": _text,
     "--env.kwargs.no_such_option": st.integers(),
     "--eval.every": st.integers(max_value=-1),
     "--eval.episodes": st.integers(max_value=0),
@@ -200,7 +200,7 @@ def test_a_crashed_or_hung_env_worker_is_restarted_and_the_run_completes(fail, t
 
     marker = tmp_path / "failed"
     cfg = build_config({"algo": "ppo", "steps": 1024, "seed": 0, "run_dir": str(tmp_path / "run"),
-                        "env": {"id": "drivelab/Flaky-v0", "num_envs": 2, "vectorization": "async", "step_timeout": 5,
+                        "env": {"id": "drivelab/Flaky-v0", "num_envs": 2, "backend": "async", "step_timeout": 5,
                                 "kwargs": {"fail": fail, "at_step": 100, "marker": str(marker)}},
                         "ppo": {"num_steps": 128}})
     train(cfg, progress=False)

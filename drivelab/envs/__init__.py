@@ -110,25 +110,29 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
                     on_restart: Callable[[int], None] | None = None) -> VectorEnv:
     """Build ``num_envs`` (default ``cfg.num_envs``) copies of the env as a Gymnasium vector env.
 
-    ``cfg.vectorization`` picks the backend: ``"sync"`` steps the envs in this process (best for
-    cheap envs such as CartPole), ``"async"`` runs one subprocess per env. ``"auto"`` chooses async
-    for simulators that allow only one instance per process (MetaDrive) and sync otherwise.
+    ``cfg.backend`` picks where they run: ``"sync"`` steps the envs in this process (best for
+    cheap envs such as CartPole), ``"async"`` runs one subprocess per env, ``"ray"`` puts them in
+    Ray actors (:mod:`drivelab.envs.ray_backend`, same contract). ``"auto"`` chooses async for
+    simulators that allow only one instance per process (MetaDrive) and sync otherwise.
     Subprocesses are started with ``spawn`` so no simulator or torch state leaks into them.
 
     ``autoreset_mode`` is passed through; each trainer chooses it deliberately (Gymnasium 1.x
     defaults to NEXT_STEP: the step after an episode ends only resets and ignores its action).
-    Subprocess envs are supervised (:mod:`drivelab.envs.supervised`): a worker that raises, dies
-    or hangs longer than ``cfg.step_timeout`` is restarted; ``on_restart(total)`` hears of it.
+    Subprocess and Ray envs are supervised (:mod:`drivelab.envs.supervised`): a worker that
+    raises, dies or hangs longer than ``cfg.step_timeout`` is restarted; ``on_restart(total)``
+    hears of it.
     """
     num_envs = cfg.num_envs if num_envs is None else num_envs
     if num_envs < 1:
         raise DrivelabError(f"config field 'env.num_envs' must be >= 1, got {num_envs}")
     _check_id(cfg.id)
-    mode = cfg.vectorization
+    mode = cfg.backend
     if mode == "auto":
         mode = "async" if needs_own_process(cfg.id) else "sync"
-    if mode == "sync" and needs_own_process(cfg.id):
-        raise DrivelabError(f"config field 'env.vectorization': '{cfg.id}' allows one instance per process; use 'async' or 'auto'")
+    if mode in ("sync", "ray") and needs_own_process(cfg.id) and (mode == "sync" or cfg.envs_per_actor > 1):
+        field = "backend" if mode == "sync" else "envs_per_actor"
+        raise DrivelabError(f"config field 'env.{field}': '{cfg.id}' allows one instance per process; "
+                            + ("use 'async', 'ray' or 'auto'" if mode == "sync" else "use 1"))
     fns = [functools.partial(make_env, copy.deepcopy(cfg), render_mode=render_mode, wrapper=wrapper)
            for _ in range(num_envs)]
     if mode == "sync":
@@ -136,4 +140,9 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
     if mode == "async":
         make = functools.partial(AsyncVectorEnv, fns, context="spawn", autoreset_mode=autoreset_mode)
         return SupervisedVectorEnv(make, cfg.step_timeout, cfg.max_restarts, cfg.restart_window, on_restart)
-    raise DrivelabError(f"config field 'env.vectorization' must be auto, sync or async, got {mode!r}")
+    if mode == "ray":
+        from drivelab.envs.ray_backend import RayVectorEnv
+
+        return RayVectorEnv(fns, cfg.envs_per_actor, autoreset_mode, cfg.actor_cpus, cfg.step_timeout,
+                            cfg.max_restarts, cfg.restart_window, on_restart)
+    raise DrivelabError(f"config field 'env.backend' must be auto, sync, async or ray, got {mode!r}")

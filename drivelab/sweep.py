@@ -1,0 +1,230 @@
+"""Experiments in parallel on Ray Tune: ``drivelab sweep CONFIG --grid K=V1,V2 ... --seeds 0-4``.
+
+Every combination of the grid values and seeds is a normal drivelab run (its own run directory
+``SWEEP/<setting>-s<seed>``, resumable) trained by :func:`drivelab.api.train` inside a Ray Tune
+trial, as many at once as the cluster has CPUs (``cpus_per_trial`` each). Running the same sweep
+again resumes unfinished runs and skips finished ones. At the end: a table of the final metrics
+per setting (mean and 95% confidence interval over the seeds, Student's t), ``sweep.json``,
+``sweep.md``, the runs' curves (``curves.png``, seeds grouped) and, when a grid key is numeric,
+the final metrics against it (``final.png``: MetaDrive's generalisation plot, success against
+the number of training scenarios).
+
+A config file may carry its sweep in a ``sweep:`` section (``grid``: {key: [values]}, ``seeds``),
+which the command line extends; see ``configs/metadrive_generalization.yaml``.
+"""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import json
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from drivelab.errors import DrivelabError
+
+# The final metrics summarised per setting, the first of each pair that the runs logged.
+SUMMARY_METRICS = ("eval/success_rate", "eval/route_completion", "eval/return_mean", "episode/success_rate",
+                   "episode/route_completion", "episode/return")
+
+
+@dataclass(frozen=True)
+class Trial:
+    setting: dict[str, Any]      # dotted config key -> value
+    seed: int
+
+    @property
+    def setting_name(self) -> str:
+        parts = [f"{key.split('.')[-1]}={value}" for key, value in self.setting.items()]
+        return re.sub(r"[^A-Za-z0-9_.=+-]", "_", ",".join(parts)) or "base"
+
+    @property
+    def name(self) -> str:
+        return f"{self.setting_name}-s{self.seed}"
+
+
+def parse_grid(items: list[str]) -> dict[str, list[Any]]:
+    """``["ppo.lr=1e-4,3e-4", ...]`` -> {"ppo.lr": [0.0001, 0.0003]} (values read as YAML)."""
+    grid: dict[str, list[Any]] = {}
+    for item in items:
+        key, sep, values = item.partition("=")
+        if not sep or not key or not values:
+            raise DrivelabError(f"--grid expects KEY=V1,V2,..., got {item!r}")
+        grid[key.strip()] = [yaml.safe_load(v) for v in values.split(",")]
+    return grid
+
+
+def parse_seeds(text: str | list[int]) -> list[int]:
+    """``"0-4"`` -> [0, 1, 2, 3, 4]; ``"0,2,7"`` -> [0, 2, 7]."""
+    if isinstance(text, list):
+        return [int(s) for s in text]
+    seeds: list[int] = []
+    try:
+        for part in str(text).split(","):
+            low, _, high = part.partition("-")
+            seeds += list(range(int(low), int(high) + 1)) if high else [int(low)]
+    except ValueError:
+        raise DrivelabError(f"--seeds expects a range like 0-4 or a list like 0,2,7, got {text!r}") from None
+    if not seeds or min(seeds) < 0:
+        raise DrivelabError(f"--seeds must name seeds >= 0, got {text!r}")
+    return seeds
+
+
+def plan(grid: dict[str, list[Any]], seeds: list[int]) -> list[Trial]:
+    keys = list(grid)
+    return [Trial(dict(zip(keys, values)), seed) for values in itertools.product(*grid.values()) for seed in seeds]
+
+
+def trial_config(base: dict, trial: Trial, run_dir: Path) -> dict:
+    from drivelab.config import set_dotted
+
+    data = copy.deepcopy(base)
+    for key, value in trial.setting.items():
+        set_dotted(data, key, value)
+    data["seed"], data["run_dir"] = trial.seed, str(run_dir)
+    return data
+
+
+def _run_trial(config: dict) -> None:
+    """A Ray Tune trial: train (or resume, or skip when finished) one drivelab run."""
+    from ray import tune
+
+    from drivelab import api
+    from drivelab.checkpoint import list_checkpoints
+
+    data, run_dir = config["data"], Path(config["data"]["run_dir"])
+    cfg = api.build_config(data, where=f"sweep trial {run_dir.name}")
+    checkpoints = list_checkpoints(run_dir)
+    finished = checkpoints and int(checkpoints[-1].name.split("_")[-1]) >= cfg.steps
+    if not finished:
+        api.train(cfg, resume=bool(checkpoints), progress=False)
+    tune.report({k: v for k, v in api.last_metrics(run_dir).items() if math.isfinite(v)})
+
+
+def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Path, ray_address: str | None = None,
+              cpus_per_trial: float = 1.0, max_concurrent: int | None = None) -> dict:
+    """Train every trial on Ray Tune, then summarise (see the module docstring). Returns the summary."""
+    from drivelab import api
+    from drivelab.envs.ray_backend import connect, import_ray
+
+    trials = plan(grid, seeds)
+    out = out.resolve()
+    datas = [trial_config(base, t, out / t.name) for t in trials]
+    for data, t in zip(datas, trials):  # every trial's config is valid before anything runs
+        api.build_config(data, where=f"sweep trial {t.name}")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "sweep.yaml").write_text(yaml.safe_dump({"base": base, "grid": grid, "seeds": seeds}, sort_keys=False))
+    import_ray()
+    connect(ray_address)
+    from ray import tune
+
+    tuner = tune.Tuner(
+        tune.with_resources(_run_trial, {"cpu": cpus_per_trial}),
+        param_space={"data": tune.grid_search(datas)},
+        tune_config=tune.TuneConfig(max_concurrent_trials=max_concurrent, trial_dirname_creator=lambda trial: trial.trial_id),
+        run_config=tune.RunConfig(name="tune", storage_path=str(out / ".tune"), verbose=0,
+                                  failure_config=tune.FailureConfig(max_failures=1)),
+    )
+    results = tuner.fit()
+    failed = [r for r in results if r.error is not None]
+    summary = summarise(out, trials)
+    if failed:
+        summary["failed"] = [f"{Path(r.config['data']['run_dir']).name}: {r.error}".splitlines()[0] for r in failed]
+    (out / "sweep.json").write_text(json.dumps(summary, indent=1))
+    (out / "sweep.md").write_text(format_table(summary) + "\n")
+    plot_sweep(out, trials, summary)
+    return summary
+
+
+def _mean_ci(values: list[float]) -> tuple[float, float]:
+    """Mean and the half-width of its 95% confidence interval (Student's t; 0 for one value)."""
+    from scipy import stats
+
+    x = np.asarray(values, float)
+    if len(x) < 2:
+        return float(x.mean()), 0.0
+    return float(x.mean()), float(stats.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / math.sqrt(len(x)))
+
+
+def summarise(out: Path, trials: list[Trial]) -> dict:
+    """{"settings": [{setting, runs, metrics: {name: [mean, ci95, n]}}]} from the runs' final metrics."""
+    from drivelab.api import last_metrics
+
+    groups: dict[str, list[Trial]] = {}
+    for t in trials:
+        groups.setdefault(t.setting_name, []).append(t)
+    settings = []
+    for name, members in groups.items():
+        finals = []
+        for t in members:
+            metrics_file = out / t.name / "metrics.csv"
+            if metrics_file.is_file():
+                finals.append(last_metrics(out / t.name))
+        metrics = {}
+        for metric in SUMMARY_METRICS:
+            values = [f[metric] for f in finals if metric in f and math.isfinite(f[metric])]
+            if values:
+                mean, ci = _mean_ci(values)
+                metrics[metric] = [mean, ci, len(values)]
+        settings.append({"name": name, "setting": members[0].setting, "runs": [t.name for t in members],
+                         "metrics": metrics})
+    return {"settings": settings}
+
+
+def format_table(summary: dict) -> str:
+    """A Markdown table: one row per setting, mean ± 95% CI (n seeds) of each final metric."""
+    metrics = [m for m in SUMMARY_METRICS if any(m in s["metrics"] for s in summary["settings"])]
+    lines = ["| setting | " + " | ".join(metrics) + " |", "|---" * (len(metrics) + 1) + "|"]
+    for s in summary["settings"]:
+        cells = []
+        for m in metrics:
+            if m in s["metrics"]:
+                mean, ci, n = s["metrics"][m]
+                cells.append(f"{mean:.3g} ± {ci:.2g} (n={n})")
+            else:
+                cells.append("-")
+        lines.append(f"| {s['name']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot_sweep(out: Path, trials: list[Trial], summary: dict) -> None:
+    """``curves.png`` (every run, seeds grouped) and, for a numeric grid key, ``final.png``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from drivelab.plots import plot_runs
+
+    runs = [out / t.name for t in trials if (out / t.name / "metrics.csv").is_file()]
+    if runs:
+        plot_runs(runs, out / "curves.png")
+    numeric = [k for k in trials[0].setting if all(isinstance(t.setting[k], (int, float)) for t in trials)]
+    if not numeric:
+        return
+    key = numeric[0]
+    metrics = [m for m in ("eval/success_rate", "episode/success_rate", "eval/route_completion", "episode/route_completion")
+               if any(m in s["metrics"] for s in summary["settings"])] or \
+              [m for m in SUMMARY_METRICS if any(m in s["metrics"] for s in summary["settings"])][:2]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for metric in metrics:
+        rows = sorted((s["setting"][key], *s["metrics"][metric][:2]) for s in summary["settings"] if metric in s["metrics"])
+        if rows:
+            x, mean, ci = map(np.array, zip(*rows))
+            label = metric.replace("eval/", "held-out ").replace("episode/", "training ")
+            ax.errorbar(x, mean, yerr=ci, marker="o", capsize=3, label=label)
+    if all(t.setting[key] > 0 for t in trials) and max(t.setting[key] for t in trials) >= 100 * min(t.setting[key] for t in trials):
+        ax.set_xscale("log")
+    ax.set_xlabel(key)
+    ax.set_title("final metrics (mean and 95% CI over seeds)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "final.png", dpi=90)
+    plt.close(fig)
