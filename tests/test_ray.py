@@ -154,3 +154,31 @@ def test_bad_ray_input_is_one_line(tmp_path, run_cli):
     out = run_cli("train", "--algo", "ppo", "--env", "MetaDrive-10env-v0", "--env.backend", "ray",
                   "--env.envs_per_actor", "2", "--run-dir", tmp_path / "r")
     assert out.returncode == 2 and "envs_per_actor" in out.stderr
+
+
+def test_merge_infos_keeps_gymnasiums_layout():
+    from drivelab.envs.ray_backend import merge_infos
+
+    a = {"speed": np.array([1.0, 2.0]), "_speed": np.array([True, False]),
+         "final_info": {"crash": np.array([True, False]), "_crash": np.array([True, False])},
+         "_final_info": np.array([True, False])}
+    b = {"speed": np.array([3.0]), "_speed": np.array([True]), "name": np.array(["x"], dtype=object)}
+    merged = merge_infos([(slice(0, 2), a), (slice(2, 3), b)], 3)
+    assert merged["speed"].tolist() == [1.0, 0.0, 3.0] and merged["_speed"].tolist() == [True, False, True]
+    assert merged["name"][2] == "x" and merged["_name"].tolist() == [False, False, True]
+    assert merged["final_info"]["crash"].tolist() == [True, False, False]
+    assert merged["_final_info"].tolist() == [True, False, False]
+
+
+def test_sweep_plan_grid_and_seeds():
+    from drivelab.sweep import parse_grid, parse_seeds, plan
+
+    grid = parse_grid(["ppo.lr=1e-4,3e-4", "env.kwargs.num_scenarios=1,10"])
+    assert grid == {"ppo.lr": [1e-4, 3e-4], "env.kwargs.num_scenarios": [1, 10]}
+    assert parse_seeds("0-2") == [0, 1, 2] and parse_seeds("0,5") == [0, 5]
+    trials = plan(grid, [0, 1])
+    assert len(trials) == 8 and trials[0].name == "lr=0.0001,num_scenarios=1-s0"
+    with pytest.raises(DrivelabError, match="--grid"):
+        parse_grid(["ppo.lr"])
+    with pytest.raises(DrivelabError, match="--seeds"):
+        parse_seeds("a-b")

@@ -21,7 +21,9 @@ Its envs' episodes end as *truncated* with their last observation (the other act
 from __future__ import annotations
 
 import os
+import signal
 import sys
+import threading
 from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -48,12 +50,19 @@ def connect(address: str | None = None) -> None:
     ray = import_ray()
     if ray.is_initialized():
         return
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)} if in_main_thread else {}
     try:
         ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False,
                  ignore_reinit_error=True)
     except (ConnectionError, ValueError, RuntimeError) as exc:
         raise DrivelabError(f"could not join the Ray cluster at {address or 'a new local instance'}: "
                             f"{first_line(exc)}") from None
+    finally:
+        # Ray installs its own handlers; drivelab's turn SIGINT/SIGTERM into a checkpoint and a clean stop.
+        for sig, handler in handlers.items():
+            if handler is not None:
+                signal.signal(sig, handler)
 
 
 def first_line(exc: BaseException) -> str:
