@@ -28,25 +28,12 @@ from drivelab import __version__, api
 from drivelab.algos import ALGORITHMS
 from drivelab.baselines import BASELINES
 from drivelab.checkpoint import checkpoint_step
-from drivelab.config import EnvConfig
+from drivelab.config import EnvConfig, parse_value
 from drivelab.errors import DrivelabError
 
 # Fields that may change when a run is resumed; anything else would change the experiment.
 RESUMABLE_FIELDS = ("steps", "max_minutes", "torch_threads", "checkpoint_every", "keep_checkpoints", "stats_window",
                     "log_every", "eval", "device", "track", "ray_address")
-
-
-def parse_value(text: str) -> Any:
-    try:
-        value = yaml.safe_load(text)
-    except yaml.YAMLError:
-        return text
-    if isinstance(value, str):  # YAML 1.1 reads 1e-3 as text
-        try:
-            return float(value) if any(c in value for c in ".eE") else int(value)
-        except ValueError:
-            return value
-    return value
 
 
 def parse_overrides(tokens: list[str]) -> dict[str, Any]:

@@ -222,6 +222,21 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 
+def parse_value(text: str) -> Any:
+    """A command-line value as YAML reads it (``3x3`` stays text, ``[64, 64]`` is a list, ``null``
+    is None), except that numbers like ``1e-3`` are numbers (YAML 1.1 reads them as text)."""
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+    if isinstance(value, str):
+        try:
+            return float(value) if any(c in value for c in ".eE") else int(value)
+        except ValueError:
+            return value
+    return value
+
+
 def set_dotted(data: dict, dotted: str, value: Any) -> None:
     """data["a"]["b"] = value for dotted == "a.b", creating intermediate mappings."""
     keys = dotted.split(".")

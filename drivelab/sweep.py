@@ -42,7 +42,7 @@ class Trial:
     @property
     def setting_name(self) -> str:
         parts = [f"{key.split('.')[-1]}={value}" for key, value in self.setting.items()]
-        return re.sub(r"[^A-Za-z0-9_.=+-]", "_", ",".join(parts)) or "base"
+        return re.sub(r"[^A-Za-z0-9_.,=+-]", "_", ",".join(parts)) or "base"
 
     @property
     def name(self) -> str:
@@ -50,13 +50,15 @@ class Trial:
 
 
 def parse_grid(items: list[str]) -> dict[str, list[Any]]:
-    """``["ppo.lr=1e-4,3e-4", ...]`` -> {"ppo.lr": [0.0001, 0.0003]} (values read as YAML)."""
+    """``["ppo.lr=1e-4,3e-4", ...]`` -> {"ppo.lr": [0.0001, 0.0003]} (values read as on the command line)."""
+    from drivelab.config import parse_value
+
     grid: dict[str, list[Any]] = {}
     for item in items:
         key, sep, values = item.partition("=")
         if not sep or not key or not values:
             raise DrivelabError(f"--grid expects KEY=V1,V2,..., got {item!r}")
-        grid[key.strip()] = [yaml.safe_load(v) for v in values.split(",")]
+        grid[key.strip()] = [parse_value(v) for v in values.split(",")]
     return grid
 
 
