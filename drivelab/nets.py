@@ -141,8 +141,8 @@ class Policy(nn.Module):
             dim = act_space.shape[0]
             self.head = layer_init(nn.Linear(self.encoder.out_dim, dim), gain=0.01)
             self.log_std = nn.Parameter(torch.full((dim,), float(log_std_init)))
-            self.register_buffer("low", torch.as_tensor(act_space.low, dtype=torch.float32))
-            self.register_buffer("high", torch.as_tensor(act_space.high, dtype=torch.float32))
+            self.register_buffer("low", torch.tensor(act_space.low, dtype=torch.float32))
+            self.register_buffer("high", torch.tensor(act_space.high, dtype=torch.float32))
         else:
             raise DrivelabError(f"action space {act_space} is not supported (need Discrete or a 1-D Box)")
 
