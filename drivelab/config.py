@@ -81,6 +81,18 @@ class EnvConfig:
             raise DrivelabError(f"config field '{where}.backend' must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
         if self.envs_per_actor < 1 or not self.actor_cpus >= 0:
             raise DrivelabError(f"config fields '{where}.envs_per_actor' (>= 1) and '{where}.actor_cpus' (>= 0) are out of range")
+        self.check_one_per_process(where)
+        if self.action_grid is not None:
+            parse_grid(self.action_grid, f"{where}.action_grid")
+            if self.fixed_throttle is not None:
+                raise DrivelabError(f"config fields '{where}.action_grid' and '{where}.fixed_throttle' exclude each other")
+        if self.reward is not None:
+            validate_reward_config(self.reward, f"{where}.reward")
+
+
+    def check_one_per_process(self, where: str = "env") -> None:
+        """Simulators with one instance per process (MetaDrive) cannot share a process: not with
+        the trainer (sync) nor with each other in one Ray actor."""
         from drivelab.envs.registration import needs_own_process, register_envs
 
         register_envs()
@@ -88,12 +100,6 @@ class EnvConfig:
             raise DrivelabError(f"config field '{where}.backend': '{self.id}' allows one instance per process; use async, ray or auto")
         if self.backend == "ray" and self.envs_per_actor > 1 and needs_own_process(self.id):
             raise DrivelabError(f"config field '{where}.envs_per_actor': '{self.id}' allows one instance per process; use 1")
-        if self.action_grid is not None:
-            parse_grid(self.action_grid, f"{where}.action_grid")
-            if self.fixed_throttle is not None:
-                raise DrivelabError(f"config fields '{where}.action_grid' and '{where}.fixed_throttle' exclude each other")
-        if self.reward is not None:
-            validate_reward_config(self.reward, f"{where}.reward")
 
 
 @dataclass

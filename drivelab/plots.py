@@ -71,18 +71,24 @@ def group_runs(run_dirs: list[Path]) -> dict[str, list[Path]]:
     return dict(groups)
 
 
-def mean_and_band(curves: list[tuple[np.ndarray, np.ndarray]], points: int = 200) -> tuple[np.ndarray, ...]:
-    """(x, mean, low, high) of several (x, y) curves on a common grid over their shared range;
-    the band is the 95% confidence interval of the mean (Student's t with n - 1 dof)."""
+def mean_and_ci95(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean over axis 0 and the half-width of its 95% confidence interval (Student's t with
+    n - 1 dof; 0 for a single sample)."""
     from scipy import stats
 
+    samples = np.asarray(samples, float)
+    mean = samples.mean(axis=0)
+    if len(samples) < 2:
+        return mean, np.zeros_like(mean)
+    return mean, stats.t.ppf(0.975, len(samples) - 1) * samples.std(axis=0, ddof=1) / np.sqrt(len(samples))
+
+
+def mean_and_band(curves: list[tuple[np.ndarray, np.ndarray]], points: int = 200) -> tuple[np.ndarray, ...]:
+    """(x, mean, low, high) of several (x, y) curves on a common grid over their shared range;
+    the band is the 95% confidence interval of the mean (:func:`mean_and_ci95`)."""
     lo, hi = max(c[0][0] for c in curves), min(c[0][-1] for c in curves)
     grid = np.linspace(lo, hi, points) if hi > lo else np.array([lo])
-    ys = np.stack([np.interp(grid, x, y) for x, y in curves])
-    mean = ys.mean(axis=0)
-    if len(curves) < 2:
-        return grid, mean, mean, mean
-    half = stats.t.ppf(0.975, len(curves) - 1) * ys.std(axis=0, ddof=1) / np.sqrt(len(curves))
+    mean, half = mean_and_ci95(np.stack([np.interp(grid, x, y) for x, y in curves]))
     return grid, mean, mean - half, mean + half
 
 

@@ -305,7 +305,8 @@ class Run:
 
     def _take_evaluation(self, wait: bool) -> None:
         """Log the evaluation in flight if it has finished (or, with ``wait``, once it has)."""
-        from drivelab.envs.ray_backend import first_line, import_ray
+        from drivelab.envs.ray_backend import import_ray
+        from drivelab.envs.supervised import error_line
 
         ray = import_ray()
         step, ref = self._eval_pending
@@ -315,7 +316,7 @@ class Run:
         try:
             summary, video, strip = ray.get(ref)
         except Exception as exc:  # noqa: BLE001 - the evaluation env failed: training goes on
-            print(f"drivelab: warning: evaluation at step {step} failed ({first_line(exc)})", file=sys.stderr)
+            print(f"drivelab: warning: evaluation at step {step} failed ({error_line(exc)})", file=sys.stderr)
             self._eval_worker = None
             return
         root = self.dir / "checkpoints"

@@ -144,19 +144,10 @@ def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Pat
     return summary
 
 
-def _mean_ci(values: list[float]) -> tuple[float, float]:
-    """Mean and the half-width of its 95% confidence interval (Student's t; 0 for one value)."""
-    from scipy import stats
-
-    x = np.asarray(values, float)
-    if len(x) < 2:
-        return float(x.mean()), 0.0
-    return float(x.mean()), float(stats.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / math.sqrt(len(x)))
-
-
 def summarise(out: Path, trials: list[Trial]) -> dict:
     """{"settings": [{setting, runs, metrics: {name: [mean, ci95, n]}}]} from the runs' final metrics."""
     from drivelab.api import last_metrics
+    from drivelab.plots import mean_and_ci95
 
     groups: dict[str, list[Trial]] = {}
     for t in trials:
@@ -172,8 +163,8 @@ def summarise(out: Path, trials: list[Trial]) -> dict:
         for metric in SUMMARY_METRICS:
             values = [f[metric] for f in finals if metric in f and math.isfinite(f[metric])]
             if values:
-                mean, ci = _mean_ci(values)
-                metrics[metric] = [mean, ci, len(values)]
+                mean, ci = mean_and_ci95(np.array(values))
+                metrics[metric] = [float(mean), float(ci), len(values)]
         settings.append({"name": name, "setting": members[0].setting, "runs": [t.name for t in members],
                          "metrics": metrics})
     return {"settings": settings}

@@ -129,10 +129,7 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
     mode = cfg.backend
     if mode == "auto":
         mode = "async" if needs_own_process(cfg.id) else "sync"
-    if mode in ("sync", "ray") and needs_own_process(cfg.id) and (mode == "sync" or cfg.envs_per_actor > 1):
-        field = "backend" if mode == "sync" else "envs_per_actor"
-        raise DrivelabError(f"config field 'env.{field}': '{cfg.id}' allows one instance per process; "
-                            + ("use 'async', 'ray' or 'auto'" if mode == "sync" else "use 1"))
+    cfg.check_one_per_process()
     fns = [functools.partial(make_env, copy.deepcopy(cfg), render_mode=render_mode, wrapper=wrapper)
            for _ in range(num_envs)]
     if mode == "sync":

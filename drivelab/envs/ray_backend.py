@@ -24,7 +24,6 @@ import os
 import signal
 import sys
 import threading
-from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -33,6 +32,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, SyncVectorEnv, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from drivelab.envs.supervised import RestartBudget, error_line, final_obs_info
 from drivelab.errors import DrivelabError
 
 
@@ -57,21 +57,12 @@ def connect(address: str | None = None) -> None:
                  ignore_reinit_error=True)
     except (ConnectionError, ValueError, RuntimeError) as exc:
         raise DrivelabError(f"could not join the Ray cluster at {address or 'a new local instance'}: "
-                            f"{first_line(exc)}") from None
+                            f"{error_line(exc)}") from None
     finally:
         # Ray installs its own handlers; drivelab's turn SIGINT/SIGTERM into a checkpoint and a clean stop.
         for sig, handler in handlers.items():
             if handler is not None:
                 signal.signal(sig, handler)
-
-
-def first_line(exc: BaseException) -> str:
-    """The root cause's message in one line (Ray wraps an actor's exception in its own)."""
-    cause = getattr(exc, "cause", None)
-    if isinstance(cause, BaseException) and cause is not exc:
-        exc = cause
-    text = str(exc).strip()
-    return f"{type(exc).__name__}: {text.splitlines()[0]}" if text else type(exc).__name__
 
 
 class EnvGroup:
@@ -111,8 +102,7 @@ class RayVectorEnv(VectorEnv):
         self._ray = ray
         self.env_fns, self.autoreset_mode = list(env_fns), AutoresetMode(autoreset_mode)
         self.num_envs = len(self.env_fns)
-        self.step_timeout, self.max_restarts, self.restart_window = step_timeout, max_restarts, restart_window
-        self.on_restart = on_restart
+        self.step_timeout, self.budget, self.on_restart = step_timeout, RestartBudget(max_restarts, restart_window), on_restart
         self.slices = [slice(i, min(i + envs_per_actor, self.num_envs)) for i in range(0, self.num_envs, envs_per_actor)]
         # max_restarts=0: a dead actor stays dead, and this class decides what its episodes become.
         self._actor_class = ray.remote(num_cpus=actor_cpus, max_restarts=0)(EnvGroup)
@@ -121,7 +111,7 @@ class RayVectorEnv(VectorEnv):
             obs_space, act_space, metadata = ray.get(self.actors[0].spaces.remote(), timeout=step_timeout)
         except Exception as exc:  # noqa: BLE001 - the env could not be built in the actor
             self.close()
-            raise DrivelabError(f"the env could not be built in a Ray actor: {first_line(exc)}") from None
+            raise DrivelabError(f"the env could not be built in a Ray actor: {error_line(exc)}") from None
         if not isinstance(obs_space, (gym.spaces.Box, gym.spaces.Discrete)):
             self.close()
             raise DrivelabError(f"the Ray backend supports Box and Discrete observations, not {obs_space}")
@@ -132,7 +122,6 @@ class RayVectorEnv(VectorEnv):
         self.render_mode = None
         self.restarts = 0
         self._steps = 0
-        self._recent: deque[int] = deque()          # vector step of each recent failure
         self._last_obs: np.ndarray | None = None
         self._fresh = [False] * len(self.actors)    # restarted, not reset yet (NEXT_STEP: reset on the next step)
         self._pending: list | None = None
@@ -158,8 +147,8 @@ class RayVectorEnv(VectorEnv):
                                                                                  self.observation_space.dtype)
         parts = []
         for a, reply in replies.items():
-            if reply is None:  # failed: the fresh actor starts all its envs anew
-                self._restart(a, "reset")
+            if isinstance(reply, BaseException):  # failed: the fresh actor starts all its envs anew
+                self._restart(a, "reset", reply)
                 reply = self._ray.get(self.actors[a].reset.remote(list(seeds[self.slices[a]]), None), timeout=self.step_timeout)
             self._fresh[a] = False
             obs[self.slices[a]] = reply[0]
@@ -186,8 +175,8 @@ class RayVectorEnv(VectorEnv):
         parts = []
         for a, envs in enumerate(self.slices):
             reply = replies[a]
-            if reply is None:
-                obs[envs], info = self._cut_episodes(a)
+            if isinstance(reply, BaseException):
+                obs[envs], info = self._cut_episodes(a, reply)
                 truncated[envs] = True
             elif pending[a][0] == "reset":
                 self._fresh[a] = False
@@ -205,51 +194,41 @@ class RayVectorEnv(VectorEnv):
     # ---- failures -------------------------------------------------------------------------
 
     def _gather(self, calls: dict[int, Any]) -> dict[int, Any]:
-        """actor -> its reply, or None where the actor raised, died or did not answer in time."""
+        """actor -> its reply, or the exception where the actor raised, died or did not answer in time."""
         ray = self._ray
-        refs = list(calls.values())
-        ready, _ = ray.wait(refs, num_returns=len(refs), timeout=self.step_timeout)
-        ready_set = set(ready)
+        ready, _ = ray.wait(list(calls.values()), num_returns=len(calls), timeout=self.step_timeout)
+        ready = set(ready)
         replies: dict[int, Any] = {}
         for a, ref in calls.items():
-            if ref not in ready_set:
-                self._error = TimeoutError(f"no answer within env.step_timeout {self.step_timeout} s")
-                replies[a] = None
+            if ref not in ready:
+                replies[a] = TimeoutError(f"no answer within env.step_timeout {self.step_timeout} s")
                 continue
             try:
                 replies[a] = ray.get(ref)
             except Exception as exc:  # noqa: BLE001 - the env raised, or the actor's process died
-                self._error = exc
-                replies[a] = None
+                replies[a] = exc
         return replies
 
-    def _cut_episodes(self, a: int) -> tuple[np.ndarray, dict]:
+    def _cut_episodes(self, a: int, exc: BaseException) -> tuple[np.ndarray, dict]:
         """Replace actor ``a``; its episodes end as truncated at their last observation."""
         envs = self.slices[a]
-        last = self._last_obs[envs] if self._last_obs is not None else np.zeros((envs.stop - envs.start, *self.single_observation_space.shape))
-        self._restart(a, "step")
+        last = self._last_obs[envs]
+        self._restart(a, "step", exc)
         if self.autoreset_mode == AutoresetMode.SAME_STEP:  # the caller expects the next episodes' starts
             obs, info = self._ray.get(self.actors[a].reset.remote([None] * len(last), None), timeout=self.step_timeout)
-            final = np.empty(len(last), dtype=object)
-            final[:] = list(last)
-            mask = np.ones(len(last), bool)
-            return obs, {**info, "final_obs": final, "_final_obs": mask, "final_info": {}, "_final_info": mask}
+            return obs, final_obs_info(last, info)
         # NEXT_STEP: the next step resets it; DISABLED: the caller resets the ended envs itself.
         self._fresh[a] = True
         return last, {}
 
-    def _restart(self, a: int, during: str) -> None:
-        exc = getattr(self, "_error", None) or RuntimeError("unknown failure")
-        message = first_line(exc)
-        self._recent.append(self._steps)
-        while self._recent and self._recent[0] < self._steps - self.restart_window:
-            self._recent.popleft()
-        if len(self._recent) > self.max_restarts:
+    def _restart(self, a: int, during: str, exc: BaseException) -> None:
+        try:
+            self.budget.spend(self._steps, exc)
+        except DrivelabError:
             self.close()
-            raise DrivelabError(f"the env failed {len(self._recent)} times within {self.restart_window} steps "
-                                f"(env.max_restarts {self.max_restarts}); last error: {message}")
+            raise
         self.restarts += 1
-        print(f"drivelab: warning: Ray env actor {a} failed during {during} ({message}); restarting it, "
+        print(f"drivelab: warning: Ray env actor {a} failed during {during} ({error_line(exc)}); restarting it, "
               "its episodes end as truncated", file=sys.stderr)
         self._ray.kill(self.actors[a], no_restart=True)
         self.actors[a] = self._spawn(self.slices[a])

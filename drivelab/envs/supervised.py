@@ -23,11 +23,47 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode, VectorEnv
 from drivelab.errors import DrivelabError
 
 
+class RestartBudget:
+    """Counts env failures; more than ``max_restarts`` within ``restart_window`` vector steps
+    raise a one-line :class:`DrivelabError` with the env's own error."""
+
+    def __init__(self, max_restarts: int, restart_window: int):
+        self.max_restarts, self.restart_window = max_restarts, restart_window
+        self._recent: deque[int] = deque()   # vector step of each recent failure
+
+    def spend(self, step: int, exc: BaseException) -> None:
+        self._recent.append(step)
+        while self._recent and self._recent[0] < step - self.restart_window:
+            self._recent.popleft()
+        if len(self._recent) > self.max_restarts:
+            raise DrivelabError(f"the env failed {len(self._recent)} times within {self.restart_window} steps "
+                                f"(env.max_restarts {self.max_restarts}); last error: {error_line(exc)}")
+
+
+def error_line(exc: BaseException) -> str:
+    """``Type: first line of the message`` of the root cause (Ray wraps an actor's exception)."""
+    cause = getattr(exc, "cause", None)
+    if isinstance(cause, BaseException) and cause is not exc:
+        exc = cause
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text.splitlines()[0]}" if text else type(exc).__name__
+
+
+def final_obs_info(last_obs, info: dict) -> dict:
+    """SAME_STEP autoreset's info for envs whose episodes were cut: ``final_obs`` is the last
+    observation each had, ``final_info`` empty."""
+    n = len(last_obs)
+    final = np.empty(n, dtype=object)
+    final[:] = list(last_obs)
+    mask = np.ones(n, bool)
+    return {**info, "final_obs": final, "_final_obs": mask, "final_info": {}, "_final_info": mask}
+
+
 class SupervisedVectorEnv(VectorEnv):
     def __init__(self, make: Callable[[], AsyncVectorEnv], step_timeout: float | None, max_restarts: int,
                  restart_window: int, on_restart: Callable[[int], None] | None = None):
         self.make, self.step_timeout = make, step_timeout
-        self.max_restarts, self.restart_window, self.on_restart = max_restarts, restart_window, on_restart
+        self.budget, self.on_restart = RestartBudget(max_restarts, restart_window), on_restart
         self.envs = make()
         for name in ("num_envs", "single_observation_space", "single_action_space", "observation_space",
                      "action_space", "metadata", "render_mode", "spec"):
@@ -35,7 +71,6 @@ class SupervisedVectorEnv(VectorEnv):
         self.autoreset_mode = self.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
         self.restarts = 0
         self._steps = 0
-        self._recent: deque[int] = deque()   # vector step of each recent restart
         self._last_obs = None
 
     def reset(self, *, seed=None, options=None):
@@ -82,26 +117,19 @@ class SupervisedVectorEnv(VectorEnv):
         last = self._last_obs
         if self.autoreset_mode == AutoresetMode.SAME_STEP:  # the caller expects the next episodes' starts
             obs, info = self.envs.reset()
-            final = np.empty(n, dtype=object)
-            final[:] = list(last)
-            info = {**info, "final_obs": final, "_final_obs": np.ones(n, bool), "final_info": {},
-                    "_final_info": np.ones(n, bool)}
             self._last_obs = obs
-            return obs, reward, terminated, truncated, info
+            return obs, reward, terminated, truncated, final_obs_info(last, info)
         self.envs.reset()  # the caller resets the ended envs itself (DISABLED) on fresh workers
         return last, reward, terminated, truncated, {}
 
     def _restart(self, exc: BaseException) -> None:
-        message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        self._recent.append(self._steps)
-        while self._recent and self._recent[0] < self._steps - self.restart_window:
-            self._recent.popleft()
-        if len(self._recent) > self.max_restarts:
+        try:
+            self.budget.spend(self._steps, exc)
+        except DrivelabError:
             self.close(terminate=True)
-            raise DrivelabError(f"the env failed {len(self._recent)} times within {self.restart_window} steps "
-                                f"(env.max_restarts {self.max_restarts}); last error: {type(exc).__name__}: {message}")
+            raise
         self.restarts += 1
-        print(f"drivelab: warning: env worker failed ({type(exc).__name__}: {message}); restarting the envs, "
+        print(f"drivelab: warning: env worker failed ({error_line(exc)}); restarting the envs, "
               "their episodes end as truncated", file=sys.stderr)
         try:
             with warnings.catch_warnings():
