@@ -138,9 +138,11 @@ class RayVectorEnv(VectorEnv):
         for a, (actor, envs) in enumerate(zip(self.actors, self.slices)):
             if mask is not None and not np.any(mask[envs]):
                 continue  # nothing of this actor's to reset: it keeps its observations
-            sub_options = None if options is None else {**options, **({"reset_mask": mask[envs]} if mask is not None else {})}
-            if self._fresh[a]:
-                sub_options = None if sub_options is None else {k: v for k, v in sub_options.items() if k != "reset_mask"}
+            sub_options = None
+            if options is not None:  # this actor's part of the mask; a fresh actor resets all its envs
+                sub_options = {k: v for k, v in options.items() if k != "reset_mask"}
+                if mask is not None and not self._fresh[a]:
+                    sub_options["reset_mask"] = mask[envs]
             calls[a] = actor.reset.remote(list(seeds[envs]), sub_options)
         replies = self._gather(calls)
         obs = self._last_obs.copy() if self._last_obs is not None else np.zeros(self.observation_space.shape,
