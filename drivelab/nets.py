@@ -40,6 +40,15 @@ class PolicyNetParams:
     hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden layer widths
     activation: str = "tanh"          # tanh | relu | elu | silu
     log_std_init: float = 0.0     # initial log std of the Gaussian policy (continuous actions)
+    # Upper bound on the log std, lowered linearly from log_std_init to this over the run (None:
+    # the std is learned freely). The deterministic policy (the mean) is what gets evaluated;
+    # when the std stays large, the clipped, noisy actions it was trained with behave differently.
+    log_std_final: float | None = None
+
+    def validate(self) -> None:
+        if self.log_std_final is not None and self.log_std_final > self.log_std_init:
+            raise DrivelabError(f"config field 'log_std_final' ({self.log_std_final}) must be <= "
+                                f"'log_std_init' ({self.log_std_init})")
 
 
 def layer_init(layer: nn.Module, gain: float = math.sqrt(2), bias: float = 0.0) -> nn.Module:
@@ -173,6 +182,24 @@ class Policy(nn.Module):
         (B,) int64 for Discrete, (B, A) for Box."""
         out = self.head(self.encoder(obs))
         return out.argmax(-1) if self.discrete else self.env_action(out)
+
+
+def limit_log_std(policy: Policy, hp: PolicyNetParams, step: int, total: int) -> dict[str, float]:
+    """Project a Gaussian policy's log std onto its scheduled upper bound (``hp.log_std_final``),
+    which falls linearly from ``log_std_init`` at step 0 to ``log_std_final`` at ``total``.
+
+    Called once per iteration before the rollout, so rollout and update share one std. Returns
+    ``{"charts/policy_std": mean std}`` for the log ({} for discrete actions). Because the
+    parameter itself is clipped (projected gradient descent), the saved weights hold the std
+    that was actually used, and resuming recomputes the same bound from the step.
+    """
+    if policy.discrete:
+        return {}
+    with torch.no_grad():
+        if hp.log_std_final is not None:
+            frac = min(1.0, step / max(total, 1))
+            policy.log_std.clamp_(max=hp.log_std_init + frac * (hp.log_std_final - hp.log_std_init))
+        return {"charts/policy_std": float(policy.log_std.exp().mean())}
 
 
 class ActorCritic(nn.Module):

@@ -47,6 +47,7 @@ class ActorCriticParams(PolicyNetParams):
     normalize_reward: bool = False  # divide rewards by the running std of the discounted return
 
     def validate(self) -> None:
+        super().validate()
         if self.num_steps < 1:
             raise DrivelabError(f"config field 'num_steps' must be >= 1, got {self.num_steps}")
         if not 0 <= self.gae_lambda <= 1 or not 0 <= self.gamma <= 1:

@@ -31,6 +31,7 @@ def test_round_trip_through_yaml(tmp_path):
     ({"env": {"action_grid": "3by3"}}, "action_grid"),
     ({"reinforce": {"advantage": "gae"}}, "advantage"),
     ({"env": {"num_envs": 0}}, "num_envs"),
+    ({"algo": "ppo", "ppo": {"log_std_init": -1.0, "log_std_final": 0.0}}, "log_std_final"),
 ])
 def test_bad_fields_name_the_field(data, fragment):
     with pytest.raises(DrivelabError) as err:

@@ -15,7 +15,7 @@ from torch.distributions import Categorical
 
 from drivelab.algos import a2c, ddpg, grpo, ppo, reinforce, sac, td3
 from drivelab.buffers import ReplayBatch
-from drivelab.nets import ActorCritic, OffPolicyAgent, Policy, make_target
+from drivelab.nets import ActorCritic, OffPolicyAgent, Policy, limit_log_std, make_target
 from drivelab.rollout import RolloutBatch
 
 OBS = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
@@ -243,3 +243,21 @@ def test_sac_update_soft_target_actor_and_temperature():
     assert log_alpha.item() == pytest.approx(np.log(0.2) + 0.5 * (target_entropy - entropy), rel=1e-5)
     assert out["loss/alpha"].item() == pytest.approx(-np.log(0.2) * (target_entropy - entropy), rel=1e-5)
     _assert_params(target, _polyak(target_before, agent, 0.1))
+
+
+def test_log_std_bound_falls_linearly_and_projects_the_parameter():
+    """The bound goes from log_std_init at step 0 to log_std_final at the last step; a log std
+    below the bound is left alone, one above it is set to it; no schedule: untouched."""
+    hp = ppo.Params(log_std_init=-0.5, log_std_final=-2.0)
+    policy = Policy(OBS, BOX, (8,), log_std_init=-0.5)
+    with torch.no_grad():
+        policy.log_std.copy_(torch.tensor([-0.4, -1.5]))
+    log = limit_log_std(policy, hp, step=500, total=1000)       # bound -1.25
+    torch.testing.assert_close(policy.log_std.detach(), torch.tensor([-1.25, -1.5]))
+    assert log["charts/policy_std"] == pytest.approx((np.exp(-1.25) + np.exp(-1.5)) / 2)
+    limit_log_std(policy, hp, step=5000, total=1000)            # past the end: the final value
+    torch.testing.assert_close(policy.log_std.detach(), torch.tensor([-2.0, -2.0]))
+    free = Policy(OBS, BOX, (8,), log_std_init=0.3)
+    limit_log_std(free, ppo.Params(), step=1000, total=1000)
+    torch.testing.assert_close(free.log_std.detach(), torch.full((2,), 0.3))
+    assert limit_log_std(Policy(OBS, DISCRETE, (8,)), hp, 0, 1000) == {}

@@ -22,7 +22,7 @@ import torch
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
 from drivelab.losses import explained_variance, policy_gradient_loss, value_loss
-from drivelab.nets import ActorCritic
+from drivelab.nets import ActorCritic, limit_log_std
 from drivelab.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
 from drivelab.optim import gradient_step, linear_decay, set_learning_rate
 from drivelab.run import Run
@@ -82,12 +82,13 @@ def train(cfg: TrainConfig, run: Run) -> None:
         while not run.done:
             lr = linear_decay(hp.lr, run.step, cfg.steps) if hp.anneal_lr else hp.lr
             set_learning_rate(optimizer, lr)
+            std_log = limit_log_std(agent.actor, hp, run.step, cfg.steps)  # optional std schedule
             batch = collector.collect(agent)                  # T steps x N envs, GAE(lambda)
             with run.timing.update:
                 losses = update(agent, optimizer, batch, hp)  # one gradient step
             if agent.obs_rms is not None:                     # after the update: both saw the same statistics
                 agent.obs_rms.update(batch.obs.float())
-            run.record({**losses, "charts/lr": lr})
+            run.record({**losses, "charts/lr": lr, **std_log})
             run.end_iteration(collector.steps_per_rollout)
     finally:
         collector.close()

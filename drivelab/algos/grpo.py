@@ -44,7 +44,7 @@ from drivelab.config import EnvConfig, TrainConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
 from drivelab.losses import approx_kl, clipped_surrogate_loss
-from drivelab.nets import ActorCritic, PolicyNetParams
+from drivelab.nets import ActorCritic, PolicyNetParams, limit_log_std
 from drivelab.returns import group_relative_advantages, group_relative_step_advantages, reward_to_go
 from drivelab.rollout import EpisodeStorage
 from drivelab.optim import gradient_step, linear_decay, set_learning_rate
@@ -68,6 +68,7 @@ class Params(PolicyNetParams):
     normalize_obs: bool = False   # running observation normalisation (saved with the weights)
 
     def validate(self) -> None:
+        super().validate()
         if self.group_size < 2:
             raise DrivelabError("config field 'grpo.group_size' must be >= 2 (advantages compare members of a group)")
         if self.advantage not in ("return", "reward_to_go"):
@@ -237,6 +238,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
         while not run.done:
             if hp.anneal_lr:
                 set_learning_rate(optimizer, linear_decay(hp.lr, run.step, cfg.steps))
+            std_log = limit_log_std(agent.actor, hp, run.step, cfg.steps)  # optional std schedule
             # 1. Group rounds (members of a group share a start seed) until batch_steps are recorded.
             rounds, steps, length = collect_group_rounds(envs, agent, storage, hp, run)
             # 2. Each recorded step's advantage relative to its group: no critic.
@@ -251,7 +253,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
             if agent.obs_rms is not None:
                 agent.obs_rms.update(batch.obs.float())
             run.record({"batch/rounds": len(rounds), "batch/steps": steps,
-                        "batch/zero_advantage_fraction": float((advantages[mask] == 0).mean())})
+                        "batch/zero_advantage_fraction": float((advantages[mask] == 0).mean()), **std_log})
             run.end_iteration(steps)
     finally:
         envs.close()

@@ -26,7 +26,7 @@ import torch
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
 from drivelab.losses import approx_kl, clipped_surrogate_loss, explained_variance, value_loss
-from drivelab.nets import ActorCritic
+from drivelab.nets import ActorCritic, limit_log_std
 from drivelab.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
 from drivelab.optim import gradient_step, linear_decay, set_learning_rate
 from drivelab.run import Run
@@ -99,6 +99,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
         while not run.done:
             if hp.anneal_lr:
                 set_learning_rate(optimizer, linear_decay(hp.lr, run.step, cfg.steps))
+            std_log = limit_log_std(agent.actor, hp, run.step, cfg.steps)  # optional std schedule
             # 1. Collect T steps in each of the N envs; GAE(lambda) advantages and critic targets.
             batch = collector.collect(agent)
             # 2. Epochs of clipped minibatch steps on that batch.
@@ -107,7 +108,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
             # 3. Observation statistics move after the update, so rollout and update saw the same.
             if agent.obs_rms is not None:
                 agent.obs_rms.update(batch.obs.float())
-            run.record({"charts/lr": optimizer.param_groups[0]["lr"]})
+            run.record({"charts/lr": optimizer.param_groups[0]["lr"], **std_log})
             # 4. Log, evaluate and checkpoint when due.
             run.end_iteration(collector.steps_per_rollout)
     finally:

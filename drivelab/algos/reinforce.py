@@ -32,7 +32,7 @@ from drivelab.config import TrainConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
 from drivelab.losses import policy_gradient_loss
-from drivelab.nets import Policy, PolicyNetParams
+from drivelab.nets import Policy, PolicyNetParams, limit_log_std
 from drivelab.returns import normalize, reward_to_go
 from drivelab.rollout import EpisodeStorage
 from drivelab.optim import gradient_step
@@ -52,6 +52,7 @@ class Params(PolicyNetParams):
     max_grad_norm: float = 0.0        # clip the global gradient norm to this
 
     def validate(self) -> None:
+        super().validate()
         if self.advantage not in ("rtg", "mean", "normalize"):
             raise DrivelabError(f"config field 'reinforce.advantage' must be rtg, mean or normalize, got {self.advantage!r}")
         if not 0.0 <= self.gamma <= 1.0:
@@ -152,12 +153,13 @@ def train(cfg: TrainConfig, run: Run) -> None:
     storage = EpisodeStorage(2 * -(-hp.batch_steps // envs.num_envs), envs.num_envs, obs_space, act_space)
     try:
         while not run.done:
+            std_log = limit_log_std(policy, hp, run.step, cfg.steps)  # optional std schedule
             # 1. Whole episodes until batch_steps steps are recorded; discounted rewards-to-go.
             batch, steps = collect_episodes(envs, policy, storage, hp.batch_steps, hp.gamma, run)
             # 2. One policy-gradient step.
             with run.timing.update:
                 run.record(update(policy, optimizer, batch, hp))
-            run.record({"batch/steps": steps})
+            run.record({"batch/steps": steps, **std_log})
             # 3. Log, evaluate and checkpoint when due (between iterations: no episode in flight).
             run.end_iteration(steps)
     finally:
