@@ -310,7 +310,8 @@ def test_a_short_metadrive_run_drives_further_than_random(tmp_path):
 
     shipped = read_yaml("configs/ppo_metadrive_demo.yaml")
     cfg = build_config({**shipped, "steps": 30_000, "seed": 0, "run_dir": str(tmp_path / "md"),
-                        "ppo": {**shipped["ppo"], "num_steps": 512, "num_minibatches": 8, "gamma": 0.99}})
+                        "ppo": {**shipped["ppo"], "num_steps": 512, "num_minibatches": 8, "gamma": 0.99,
+                                                "log_std_final": None}})
     train(cfg, progress=False)
     trained = evaluate_checkpoint(tmp_path / "md", episodes=10)[0].summary()
     random = evaluate_baseline("random", EnvConfig(id=cfg.env.id, kwargs=dict(cfg.env.kwargs), num_envs=2), 10).summary()
