@@ -25,6 +25,7 @@ from torch.distributions import Categorical, Distribution, Independent, Normal
 
 from drivelab.errors import DrivelabError
 from drivelab.normalize import RunningMeanStd
+from drivelab.optim import linear_decay
 
 # Distribution argument checks cost tens of microseconds per call, i.e. a noticeable share of an
 # env step in a rollout loop; drivelab's networks produce valid parameters by construction.
@@ -191,14 +192,15 @@ def limit_log_std(policy: Policy, hp: PolicyNetParams, step: int, total: int) ->
     Called once per iteration before the rollout, so rollout and update share one std. Returns
     ``{"charts/policy_std": mean std}`` for the log ({} for discrete actions). Because the
     parameter itself is clipped (projected gradient descent), the saved weights hold the std
-    that was actually used, and resuming recomputes the same bound from the step.
+    that was used (moved by at most the last update), and resuming recomputes the same bound
+    from the step.
     """
     if policy.discrete:
         return {}
     with torch.no_grad():
         if hp.log_std_final is not None:
-            frac = min(1.0, step / max(total, 1))
-            policy.log_std.clamp_(max=hp.log_std_init + frac * (hp.log_std_final - hp.log_std_init))
+            gap = linear_decay(hp.log_std_init - hp.log_std_final, step, total)  # init-final at 0, 0 at total
+            policy.log_std.clamp_(max=hp.log_std_final + gap)
         return {"charts/policy_std": float(policy.log_std.exp().mean())}
 
 
