@@ -12,7 +12,7 @@ import drivelab  # noqa: F401
 from drivelab.config import EnvConfig
 from drivelab.envs import make_env
 from drivelab.envs.filters import apply_filters, binarize, crop, resize, sobel
-from drivelab.envs.rewards import cte_reward, lane_reward, progress_reward, score, validate_reward_config
+from drivelab.envs.rewards import cte_reward, idle_penalty, lane_reward, progress_reward, score, validate_reward_config
 from drivelab.envs.wrappers import CruiseControl, DifferentialDrive, FixedThrottle, wheel_velocities
 from drivelab.episodes import episode_info
 from drivelab.errors import DrivelabError
@@ -58,6 +58,7 @@ def test_reward_terms_by_hand():
     assert lane_reward(info, None).value == pytest.approx(1.0 * 2.0 * 0.5 - 10 * 0.75)
     assert lane_reward({**info, "collided": True}, None).value == pytest.approx(1.0 - 7.5 - 40)
     assert progress_reward(info, {**info, "route_completion": 0.25}).value == pytest.approx(5.0)
+    assert idle_penalty(info, None).value == 0.0 and idle_penalty(info, None, min_speed=2.5).value == -1.0
     total, parts, end = score(validate_reward_config({"cte": {"weight": 2.0, "max_cte": 1.5}, "native": {"weight": 0.5}}),
                               info, None)
     assert parts == pytest.approx({"cte": 2 * 0.75, "native": 0.2}) and total == pytest.approx(1.7) and not end
