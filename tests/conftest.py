@@ -1,6 +1,8 @@
+import multiprocessing
 import os
 import subprocess
 import sys
+from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
@@ -16,3 +18,21 @@ def run_cli():
                               timeout=timeout)
 
     return _run
+
+
+@pytest.fixture
+def fresh_process():
+    """The function ``run_in_fresh_process`` (below), for tests that build MetaDrive's pygame views."""
+    return run_in_fresh_process
+
+
+def run_in_fresh_process(fn, *args, timeout: float = 300):
+    """Call the module-level function ``fn(*args)`` in a newly spawned interpreter and return its result.
+
+    MetaDrive's engine (Panda3D, Bullet, pygame) is one per process and leaves state behind when it
+    closes: a pygame top-down canvas built after several engines in the pytest process segfaulted on
+    CI and took the whole suite down. In a fresh process the same test is isolated, an assertion comes
+    back as itself (with the child's traceback as its cause) and a crash fails only this test.
+    """
+    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(fn, *args).result(timeout=timeout)

@@ -193,7 +193,11 @@ def test_fixed_throttle_action_shape():
         FixedThrottle(_Camera(), throttle=2.0)
 
 
-def test_top_down_task_gives_uint8_images_for_a_cnn():
+def test_top_down_task_gives_uint8_images_for_a_cnn(fresh_process):
+    fresh_process(_check_top_down_task)  # pygame's canvas after other engines: see conftest.run_in_fresh_process
+
+
+def _check_top_down_task():
     env = make_env(EnvConfig(id="drivelab/MetaDriveTopDown-v0"))
     try:
         obs, _ = env.reset(seed=0)

@@ -32,7 +32,11 @@ def test_notebook_ids_are_registered_with_their_historical_meaning():
         assert (kwargs["start_seed"], kwargs["num_scenarios"]) == (start, count), env_id
 
 
-def test_notebook_line_works_offline_with_state_observations_and_time_limit_truncation():
+def test_notebook_line_works_offline_with_state_observations_and_time_limit_truncation(fresh_process):
+    fresh_process(_check_notebook_line)  # it draws the pygame top-down view: see conftest.run_in_fresh_process
+
+
+def _check_notebook_line():
     before = _metadrive_files()
     env = gym.make("MetaDrive-validation-v0", config={"use_render": False, "horizon": 25, "traffic_density": 0.0})
     try:
