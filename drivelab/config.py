@@ -65,6 +65,10 @@ class EnvConfig:
     step_timeout: float | None = 300.0
     max_restarts: int = 3
     restart_window: int = 10_000
+    # On-policy rollouts: the subprocess envs step as this many groups, each on its own, so the
+    # trainer picks one group's actions while the others simulate (drivelab.envs.groups). None:
+    # one group per env for subprocess envs (async), 1 otherwise.
+    step_groups: int | None = None
 
     def validate(self, where: str = "env") -> None:
         """Check every field once, before anything is built (the env factory trusts the result)."""
@@ -82,6 +86,12 @@ class EnvConfig:
         if self.envs_per_actor < 1 or not self.actor_cpus >= 0:
             raise DrivelabError(f"config fields '{where}.envs_per_actor' (>= 1) and '{where}.actor_cpus' (>= 0) are out of range")
         self.check_one_per_process(where)
+        if self.step_groups is not None and not 1 <= self.step_groups <= self.num_envs:
+            raise DrivelabError(f"config field '{where}.step_groups' must be between 1 and num_envs "
+                                f"({self.num_envs}), got {self.step_groups}")
+        if (self.step_groups or 1) > 1 and self.resolved_backend() != "async":
+            raise DrivelabError(f"config field '{where}.step_groups' > 1 needs subprocess envs (env.backend: async, "
+                                f"or auto for a simulator such as MetaDrive); '{self.id}' runs {self.resolved_backend()}")
         if self.action_grid is not None:
             parse_grid(self.action_grid, f"{where}.action_grid")
             if self.fixed_throttle is not None:
@@ -89,6 +99,21 @@ class EnvConfig:
         if self.reward is not None:
             validate_reward_config(self.reward, f"{where}.reward")
 
+
+    def resolved_step_groups(self) -> int:
+        """``step_groups``, with None resolved: one group per env where the envs are subprocesses."""
+        if self.step_groups is not None:
+            return self.step_groups
+        return self.num_envs if self.resolved_backend() == "async" else 1
+
+    def resolved_backend(self) -> str:
+        """``backend``, with auto resolved: async for one-per-process simulators, sync otherwise."""
+        from drivelab.envs.registration import needs_own_process, register_envs
+
+        if self.backend != "auto":
+            return self.backend
+        register_envs()
+        return "async" if needs_own_process(self.id) else "sync"
 
     def check_one_per_process(self, where: str = "env") -> None:
         """Simulators with one instance per process (MetaDrive) cannot share a process: not with

@@ -59,22 +59,27 @@ class EpisodeTracker:
         self.total_episodes = 0
 
     def step(self, rewards: np.ndarray, done: np.ndarray, info: dict,
-             counted: np.ndarray | None = None) -> list[Episode]:
-        """Add one vector step (rewards, done = terminated | truncated, both (N,)). Returns the
-        episodes that ended at this step; those where ``counted`` (default: all) also enter the
-        window (REINFORCE and GRPO do not count the episodes of envs that idle, masked)."""
-        self.running_return += rewards
-        self.running_length += 1
+             counted: np.ndarray | None = None, first_env: int = 0) -> list[Episode]:
+        """Add one vector step (rewards, done = terminated | truncated, both (n,)) of the envs
+        ``first_env .. first_env + n - 1`` (all N by default; a group of them when groups of envs
+        step on their own, see :class:`drivelab.envs.groups.EnvGroups`). Returns the episodes
+        that ended at this step; those where ``counted`` (default: all) also enter the window
+        (REINFORCE and GRPO do not count the episodes of envs that idle, masked)."""
+        envs = slice(first_env, first_env + len(rewards))
+        self.running_return[envs] += rewards
+        self.running_length[envs] += 1
         if not done.any():
             return []
         source = info.get("final_info", info)
         ended = []
         for i in np.flatnonzero(done):
-            episode = Episode(int(i), float(self.running_return[i]), int(self.running_length[i]), episode_info(source, i))
+            env = first_env + int(i)
+            episode = Episode(env, float(self.running_return[env]), int(self.running_length[env]), episode_info(source, i))
             ended.append(episode)
             if counted is None or counted[i]:
                 self._add(episode)
-        self.restart(done)
+            self.running_return[env] = 0.0
+            self.running_length[env] = 0
         return ended
 
     def restart(self, mask: np.ndarray) -> None:

@@ -185,6 +185,18 @@ class Policy(nn.Module):
         return out.argmax(-1) if self.discrete else self.env_action(out)
 
 
+def sample(dist: Distribution, generator: torch.Generator | None = None) -> torch.Tensor:
+    """A sample of an on-policy :class:`Policy`'s distribution from ``generator`` (None: torch's
+    global generator, drawing exactly what ``dist.sample()`` draws)."""
+    if generator is None:
+        return dist.sample()
+    if isinstance(dist, Categorical):
+        return torch.multinomial(dist.probs.reshape(-1, dist.probs.shape[-1]), 1, True, generator=generator
+                                 ).reshape(dist.probs.shape[:-1])
+    normal = dist.base_dist  # Independent(Normal)
+    return torch.normal(normal.loc, normal.scale, generator=generator)
+
+
 def limit_log_std(policy: Policy, hp: PolicyNetParams, step: int, total: int) -> dict[str, float]:
     """Project a Gaussian policy's log std onto its scheduled upper bound (``hp.log_std_final``),
     which falls linearly from ``log_std_init`` at step 0 to ``log_std_final`` at ``total``.
@@ -233,6 +245,11 @@ class ActorCritic(nn.Module):
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         """(B,) state values."""
         return self.critic(self.prepare(obs)).squeeze(-1)
+
+    def distribution_and_value(self, obs: torch.Tensor) -> tuple[Distribution, torch.Tensor]:
+        """pi(.|obs) and the (B,) values, normalising the observations once (the rollout's step)."""
+        prepared = self.prepare(obs)
+        return self.actor.distribution(prepared), self.critic(prepared).squeeze(-1)
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:

@@ -23,9 +23,9 @@ import torch
 from gymnasium.vector import AutoresetMode
 
 from drivelab.config import EnvConfig
-from drivelab.envs import make_vector_env
+from drivelab.envs.groups import EnvGroups
 from drivelab.errors import DrivelabError
-from drivelab.nets import ActorCritic, PolicyNetParams
+from drivelab.nets import ActorCritic, PolicyNetParams, sample
 from drivelab.normalize import RunningMeanStd
 from drivelab.returns import gae
 from drivelab.run import Run
@@ -98,24 +98,34 @@ class RolloutCollector:
     """N envs (``AutoresetMode.SAME_STEP``) stepped T steps at a time into a preallocated
     :class:`RolloutBuffer`, their episodes running on across rollouts.
 
-    Episode returns, lengths and driving metrics go to ``run.episodes``; env time to
-    ``run.timing.env``. With ``scale_rewards`` the rewards are divided by the running std of the
-    discounted return (Engstrom et al. 2020), so the critic's targets keep a stable scale; its
-    statistics are a module (``reward_rms``) to checkpoint with the agent.
+    The envs form ``env.step_groups`` groups (:class:`drivelab.envs.groups.EnvGroups`) that
+    step on their own: each group fills its own columns of the buffer, row by row, and the
+    collector serves whichever group answers first. Every group samples its actions from its
+    own random generator, so a rollout's data do not depend on that order (with one group,
+    torch's global generator, as before groups existed).
+
+    Episode returns, lengths and driving metrics go to ``run.episodes``; time spent waiting on
+    the envs to ``run.timing.env``. With ``scale_rewards`` the rewards are divided by the running
+    std of the discounted return (Engstrom et al. 2020), so the critic's targets keep a stable
+    scale; its statistics are a module (``reward_rms``) to checkpoint with the agent.
     """
 
     def __init__(self, env_cfg: EnvConfig, run: Run, *, num_steps: int, gamma: float, gae_lambda: float,
                  scale_rewards: bool):
-        self.envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.SAME_STEP, on_restart=run.note_env_restart)
+        self.envs = EnvGroups(env_cfg, env_cfg.resolved_step_groups(), autoreset_mode=AutoresetMode.SAME_STEP,
+                              on_restart=run.note_env_restart)
         self.run, self.gamma, self.gae_lambda = run, gamma, gae_lambda
-        n = self.envs.num_envs
+        n = env_cfg.num_envs
         self.obs_space, self.act_space = self.envs.single_observation_space, self.envs.single_action_space
         self.buffer = RolloutBuffer(num_steps, n, self.obs_space, self.act_space, run.device)
         self.steps_per_rollout = num_steps * n
-        self.obs, _ = self.envs.reset(seed=run.reset_seeds(np.ones(n, bool)))
+        self.obs = self.envs.reset(run.reset_seeds(np.ones(n, bool)))
+        self.generators: list[torch.Generator | None] = [None]
+        if len(self.envs) > 1:
+            seeds = run.rng.integers(0, 2**63 - 1, size=len(self.envs)).tolist()
+            self.generators = [torch.Generator(run.device).manual_seed(seed) for seed in seeds]
         self.reward_rms = RunningMeanStd(()) if scale_rewards else None
         self.discounted_return = np.zeros(n)
-        self._pending: np.ndarray | None = None      # actions of a sync vector env, sent at _receive
 
     def modules(self) -> dict[str, torch.nn.Module]:
         """What a checkpoint must keep of the collector (the reward-scaling statistics)."""
@@ -125,48 +135,52 @@ class RolloutCollector:
     def collect(self, agent: ActorCritic) -> RolloutBatch:
         """Fill the buffer with T steps of ``agent`` in each env; return them with GAE(lambda)
         advantages as a flat batch of B = T * N samples."""
-        buf, device = self.buffer, self.buffer.values.device
-        for t in range(len(buf.rewards)):
-            obs = torch.as_tensor(self.obs, device=device)
-            dist = agent.distribution(obs)
-            action = dist.sample()
-            # Subprocess envs simulate while this process stores the step and computes V(s_t):
-            # only the action has to be known before the envs can move.
-            self._send(agent.to_env(action))
-            buf.obs[t] = obs
-            buf.actions[t] = action
-            buf.log_probs[t] = dist.log_prob(action)
-            buf.values[t] = agent.value(obs)
+        buf, num_steps = self.buffer, len(self.buffer.rewards)
+        row = [0] * len(self.envs)             # the next row of each group
+        for group in range(len(self.envs)):
+            self._act(agent, group, 0)
+        in_flight = list(range(len(self.envs)))
+        while in_flight:
             with self.run.timing.env:
-                self.obs, reward, terminated, truncated, info = self._receive()
+                group = self.envs.wait_any(in_flight)
+                obs, reward, terminated, truncated, info = self.envs.receive(group)
+            envs, t = self.envs.slices[group], row[group]
+            self.obs[envs] = obs
             done = terminated | truncated
-            self.run.episodes.step(reward, done, info)
-            buf.rewards[t] = reward
-            buf.terminated[t] = terminated
-            buf.dones[t] = done
+            self.run.episodes.step(reward, done, info, first_env=envs.start)
+            buf.rewards[t, envs] = reward
+            buf.terminated[t, envs] = terminated
+            buf.dones[t, envs] = done
             # V(s_{t+1}) for GAE: the next row's value inside an episode (filled below), the
             # value of the final observation where a time limit cut the episode.
             cut = truncated & ~terminated
             if cut.any():
-                final_obs = np.stack(info["final_obs"][cut])
-                buf.next_values[t, cut] = agent.value(torch.as_tensor(final_obs, device=device)).cpu().numpy()
+                final_obs = torch.as_tensor(np.stack(info["final_obs"][cut]), device=buf.values.device)
+                buf.next_values[t, envs][cut] = agent.value(final_obs).cpu().numpy()
+            row[group] = t + 1
+            if t + 1 < num_steps:
+                self._act(agent, group, t + 1)
+            else:
+                in_flight.remove(group)
         if self.reward_rms is not None:
             self._scale_rewards(buf)
         buf.next_values[:-1] = np.where(buf.dones[:-1], buf.next_values[:-1], buf.values[1:].cpu().numpy())
-        last_value = agent.value(torch.as_tensor(self.obs, device=device)).cpu().numpy()
+        last_value = agent.value(torch.as_tensor(self.obs, device=buf.values.device)).cpu().numpy()
         buf.next_values[-1] = np.where(buf.dones[-1], buf.next_values[-1], last_value)
         return buf.batch(self.gamma, self.gae_lambda)
 
-    def _send(self, actions: np.ndarray) -> None:
-        if hasattr(self.envs, "step_async"):  # subprocess envs
-            self.envs.step_async(actions)
-        else:
-            self._pending = actions
-
-    def _receive(self) -> tuple:
-        if hasattr(self.envs, "step_async"):
-            return self.envs.step_wait()
-        return self.envs.step(self._pending)
+    def _act(self, agent: ActorCritic, group: int, t: int) -> None:
+        """Sample the group's actions for its current observations, send them, and store row t
+        (observation, action, log-prob, V(s_t)) while the group's envs simulate."""
+        buf, envs = self.buffer, self.envs.slices[group]
+        obs = torch.as_tensor(self.obs[envs], device=buf.values.device)
+        dist, value = agent.distribution_and_value(obs)
+        action = sample(dist, self.generators[group % len(self.generators)])
+        self.envs.send(group, agent.to_env(action))
+        buf.obs[t, envs] = obs
+        buf.actions[t, envs] = action
+        buf.log_probs[t, envs] = dist.log_prob(action)
+        buf.values[t, envs] = value
 
     def _scale_rewards(self, buf: RolloutBuffer) -> None:
         """Divide the rollout's rewards by the running std of the discounted return.

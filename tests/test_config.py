@@ -31,6 +31,8 @@ def test_round_trip_through_yaml(tmp_path):
     ({"env": {"action_grid": "3by3"}}, "action_grid"),
     ({"reinforce": {"advantage": "gae"}}, "advantage"),
     ({"env": {"num_envs": 0}}, "num_envs"),
+    ({"env": {"num_envs": 2, "step_groups": 3}}, "step_groups"),
+    ({"env": {"id": "CartPole-v1", "num_envs": 2, "step_groups": 2}}, "step_groups"),   # sync envs: no groups
     ({"algo": "ppo", "ppo": {"log_std_init": -1.0, "log_std_final": 0.0}}, "log_std_final"),
 ])
 def test_bad_fields_name_the_field(data, fragment):

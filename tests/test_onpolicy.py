@@ -10,6 +10,7 @@ from drivelab.algos import grpo
 from drivelab.api import build_config
 from drivelab.config import EnvConfig
 from drivelab.envs import env_spaces, make_vector_env
+from drivelab.episodes import EpisodeTracker
 from drivelab.api import evaluate_checkpoint
 from drivelab.losses import approx_kl, clipped_surrogate_loss, value_loss
 from drivelab.nets import ActorCritic
@@ -55,12 +56,19 @@ def test_truncation_bootstraps_from_the_final_observation_but_termination_does_n
     assert truncated_adv[1, 0] == terminated_adv[1, 0] == pytest.approx(1.0)
 
 
+class _HandCritic(torch.nn.Module):
+    """V(s) = 100 x + 7 (x: the cart position): a critic we can compute by hand."""
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return 100.0 * obs[:, :1] + 7.0
+
+
 def test_collector_uses_the_value_of_the_final_observation_on_truncation(tmp_path):
     cfg = build_config({"algo": "ppo", "run_dir": str(tmp_path), "seed": 0,
                         "env": {"id": "CartPole-v1", "num_envs": 2, "kwargs": {"max_episode_steps": 4}}})
     obs_space, act_space = env_spaces(cfg.env)
     agent = ActorCritic(obs_space, act_space, [8])
-    agent.value = lambda obs: 100.0 * obs[:, 0] + 7.0   # a critic we can compute by hand
+    agent.critic = _HandCritic()
     run = Run(cfg, progress=False)
     collector = RolloutCollector(cfg.env, run, num_steps=6, gamma=0.99, gae_lambda=0.95, scale_rewards=False)
     buf = collector.buffer
@@ -80,6 +88,39 @@ def test_collector_uses_the_value_of_the_final_observation_on_truncation(tmp_pat
         # (explicit Euler), so the final cart position follows from row 3's observation.
         final_x = buf.obs[3, i, 0].item() + 0.02 * buf.obs[3, i, 1].item()
         assert buf.next_values[3, i] == pytest.approx(100.0 * final_x + 7.0, rel=1e-4)
+
+
+def _grouped_rollout(run_dir, pick_last: bool):
+    cfg = build_config({"algo": "ppo", "run_dir": str(run_dir), "seed": 0,
+                        "env": {"id": "CartPole-v1", "num_envs": 3, "backend": "async", "step_groups": 2}})
+    run = Run(cfg, progress=False)                       # seeds torch: the same initial weights
+    obs_space, act_space = env_spaces(cfg.env)
+    agent = ActorCritic(obs_space, act_space, [8])
+    collector = RolloutCollector(cfg.env, run, num_steps=40, gamma=0.99, gae_lambda=0.95, scale_rewards=False)
+    if pick_last:  # serve the groups in the opposite order to the one the pipes suggest
+        collector.envs.wait_any = lambda in_flight: in_flight[-1]
+    try:
+        return collector.envs.slices, collector.collect(agent), list(run.episodes.returns)
+    finally:
+        collector.close()
+        run.close()
+
+
+def test_step_groups_fill_the_same_rollout_whichever_group_answers_first(tmp_path):
+    slices, first, first_returns = _grouped_rollout(tmp_path / "first", pick_last=False)
+    _, last, last_returns = _grouped_rollout(tmp_path / "last", pick_last=True)
+    assert slices == [slice(0, 2), slice(2, 3)]
+    for name in first._fields:
+        torch.testing.assert_close(getattr(first, name), getattr(last, name), msg=name)
+    assert sorted(first_returns) == sorted(last_returns) and first_returns  # the same episodes ended
+
+
+def test_episode_tracker_steps_a_group_of_envs():
+    tracker = EpisodeTracker(num_envs=3)
+    tracker.step(np.array([1.0, 1.0, 1.0]), np.zeros(3, bool), {})
+    ended = tracker.step(np.array([2.0]), np.array([True]), {}, first_env=2)   # env 2 alone
+    assert [(e.env, e.ret, e.length) for e in ended] == [(2, 3.0, 2)]
+    np.testing.assert_array_equal(tracker.running_length, [1, 1, 0])
 
 
 def test_group_relative_advantages_by_hand():

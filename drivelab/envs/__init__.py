@@ -126,9 +126,7 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
     if num_envs < 1:
         raise DrivelabError(f"config field 'env.num_envs' must be >= 1, got {num_envs}")
     _check_id(cfg.id)
-    mode = cfg.backend
-    if mode == "auto":
-        mode = "async" if needs_own_process(cfg.id) else "sync"
+    mode = cfg.resolved_backend()
     cfg.check_one_per_process()
     fns = [functools.partial(make_env, copy.deepcopy(cfg), render_mode=render_mode, wrapper=wrapper)
            for _ in range(num_envs)]

@@ -71,6 +71,7 @@ class SupervisedVectorEnv(VectorEnv):
         self.autoreset_mode = self.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
         self.restarts = 0
         self._steps = 0
+        self._pending_error: Exception | None = None
         self._last_obs = None
 
     def reset(self, *, seed=None, options=None):
@@ -108,6 +109,11 @@ class SupervisedVectorEnv(VectorEnv):
     def step(self, actions):
         self.step_async(actions)
         return self.step_wait()
+
+    def result_pipes(self) -> list:
+        """The workers' pipes, readable once a step's result is there (for ``connection.wait``;
+        a dead worker's pipe is readable too, and its ``step_wait`` restarts it)."""
+        return [] if self._pending_error is not None else self.envs.parent_pipes
 
     def _cut_episodes(self, exc: BaseException):
         """Restart every worker; the step ends all episodes in flight as truncated."""
