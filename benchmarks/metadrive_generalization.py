@@ -5,7 +5,9 @@ MetaDrive's own PPO expert and a random policy measured with the same protocol. 
     python benchmarks/metadrive_generalization.py --config configs/ppo_metadrive_drive.yaml --run-dir runs/drive
     python benchmarks/metadrive_generalization.py --run-dir runs/drive --skip-train   # re-evaluate a finished run
 
-Training resumes from the run's last checkpoint if it was interrupted. The first checkpoint kept
+Training resumes from the run's last checkpoint if it was interrupted; evaluating again into the same
+JSON (same protocol) reuses the checkpoints and baselines evaluated before, so a long run can be
+evaluated while it trains. The first checkpoint kept
 in ``RUN/checkpoints`` at or after each multiple of ``--every`` (and the last one) is evaluated
 deterministically on ``--heldout`` validation scenarios (MetaDrive-validation-v0, scenarios
 0..N-1) and ``--train-episodes`` training scenarios (the run's own env, seeds 0..M-1). Writes
@@ -42,7 +44,8 @@ def train_run(config: str | None, run_dir: Path, steps: int | None) -> float:
 
 
 def evaluate_run(run_dir: Path, every: int, heldout: int, train_episodes: int, num_envs: int,
-                 from_step: int = 0) -> list[dict]:
+                 from_step: int = 0, known: dict[int, dict] | None = None) -> list[dict]:
+    """Evaluate the chosen checkpoints; rows in ``known`` (by step, same protocol) are reused."""
     paths = [p for p in list_checkpoints(run_dir) if checkpoint_step(p) >= from_step]
     steps = [checkpoint_step(p) for p in paths]
     # the first checkpoint at or after each multiple of `every` (iterations rarely end on one), and the last
@@ -50,6 +53,9 @@ def evaluate_run(run_dir: Path, every: int, heldout: int, train_episodes: int, n
                     | {paths[-1]})
     curve = []
     for path in chosen:
+        if known and checkpoint_step(path) in known:
+            curve.append(known[checkpoint_step(path)])
+            continue
         ckpt = load_checkpoint(path)
         cfg = checkpoint_config(ckpt)
         row = {"step": ckpt.step}
@@ -109,11 +115,18 @@ def main() -> None:
     parser.add_argument("--out", help="JSON path (the PNG goes beside it); default RUN/generalization.json")
     args = parser.parse_args()
     run_dir = Path(args.run_dir)
+    out = Path(args.out) if args.out else run_dir / "generalization.json"
     wall = 0.0 if args.skip_train else train_run(args.config, run_dir, args.steps)
     started = time.perf_counter()
-    curve = evaluate_run(run_dir, args.every, args.heldout, args.train_episodes, args.num_envs, args.from_step)
+    # A second call on the same output adds the new checkpoints (and baselines) only.
+    previous = json.loads(out.read_text()) if out.exists() else {}
+    if (previous.get("heldout_episodes"), previous.get("train_episodes")) != (args.heldout, args.train_episodes):
+        previous = {}
+    known = {row["step"]: row for row in previous.get("curve", [])}
+    curve = evaluate_run(run_dir, args.every, args.heldout, args.train_episodes, args.num_envs, args.from_step, known)
     heldout_env = EnvConfig(id=HELDOUT_ENV, num_envs=args.num_envs)
-    baselines = {name: evaluate_baseline(name, heldout_env, args.heldout).summary() for name in args.baselines}
+    baselines = {name: previous.get("baselines", {}).get(name) or evaluate_baseline(name, heldout_env, args.heldout).summary()
+                 for name in args.baselines}
     metrics = [row for row in curve if "heldout" in row]
     best = max(metrics, key=lambda row: (row["heldout"]["success_rate"], row["heldout"]["route_completion"]), default=None)
     cfg = read_yaml(run_dir / "config.yaml")
@@ -121,7 +134,6 @@ def main() -> None:
               "train_env": cfg["env"]["id"], "heldout_env": HELDOUT_ENV, "heldout_episodes": args.heldout,
               "train_episodes": args.train_episodes, "train_wall_s_this_call": wall,
               "eval_wall_s": time.perf_counter() - started, "curve": curve, "baselines": baselines, "best": best}
-    out = Path(args.out) if args.out else run_dir / "generalization.json"
     out.write_text(json.dumps(result, indent=1) + "\n")
     plot(curve, baselines, out.with_suffix(".png"),
          f"{cfg['algo']} trained on {cfg['env']['id']}: {args.heldout} held-out validation scenarios")

@@ -89,5 +89,9 @@ class EnvGroups:
         return envs.step(actions)
 
     def close(self) -> None:
+        """Close every group, even when one of them fails to close."""
         for envs in self.envs:
-            envs.close()
+            try:
+                envs.close()
+            except Exception:  # noqa: BLE001 - keep closing the others
+                pass
