@@ -3,13 +3,14 @@
 For each number of env processes N (default 1, 2 and 4), on the env of a PPO config:
 
 * ``raw``: random actions through drivelab's lockstep subprocess vector env: the ceiling;
-* ``drivelab_lockstep``: drivelab's PPO with ``env.step_groups: 1`` (all envs step together);
-* ``drivelab``: drivelab's PPO with its default, one step group per env (drivelab.envs.groups);
+* ``drivelab``: drivelab's PPO as configured by default: all envs step together (lockstep);
+* ``drivelab_groups``: drivelab's PPO with ``env.step_groups: N``, one step group per env
+  (drivelab.envs.groups: each group steps while the trainer chooses the others' actions);
 * ``sb3``: Stable-Baselines3's PPO (``pip install stable-baselines3``) on the same env factory in a
   ``SubprocVecEnv``, with the config's rollout length, minibatch, epochs, network, Gaussian std
   and normalisation (``VecNormalize``).
 
-Training speeds are steady state: env steps per second from the end of the first rollout to the
+Both sides use one torch thread on the CPU and the config's activation. Training speeds are steady state: env steps per second from the end of the first rollout to the
 end of the run (process start-up and the first rollout excluded), updates included. Run it with
 nothing else on the machine:
 
@@ -32,11 +33,14 @@ import torch
 from drivelab.api import build_config, train
 from drivelab.config import read_yaml, set_dotted
 from drivelab.envs import make_env
+from drivelab.nets import activation
 from training import random_steps_per_second  # benchmarks/training.py
 
 
 def steady_steps_per_second(rows: list[tuple[int, float]]) -> float:
     """Steps/s between the first and the last (step, time) mark."""
+    if len(rows) < 2:
+        raise SystemExit("too few rollouts to measure a steady speed: raise --steps (at least 3 rollouts)")
     (step0, time0), (step1, time1) = rows[0], rows[-1]
     return (step1 - step0) / (time1 - time0)
 
@@ -88,7 +92,7 @@ def sb3_speed(data: dict, num_envs: int, steps: int) -> float:
                 gae_lambda=hp.gae_lambda, clip_range=hp.clip_coef, ent_coef=hp.ent_coef, vf_coef=hp.vf_coef,
                 max_grad_norm=hp.max_grad_norm, seed=cfg.seed, device="cpu",
                 policy_kwargs={"net_arch": {"pi": list(hp.hidden), "vf": list(hp.hidden)},
-                               "activation_fn": torch.nn.Tanh, "log_std_init": hp.log_std_init})
+                               "activation_fn": activation(hp.activation), "log_std_init": hp.log_std_init})
     try:
         model.learn(total_timesteps=steps, callback=marks)
     finally:
@@ -104,7 +108,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=12288, help="training steps per measurement")
     parser.add_argument("--seconds", type=float, default=40.0, help="random-action measurement time")
     parser.add_argument("--num-steps", type=int, help="override ppo.num_steps (rollout length per env)")
-    parser.add_argument("--skip", nargs="*", default=[], choices=["raw", "drivelab_lockstep", "drivelab", "sb3"])
+    parser.add_argument("--skip", nargs="*", default=[], choices=["raw", "drivelab", "drivelab_groups", "sb3"])
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args()
     torch.set_num_threads(1)  # as drivelab's trainer (cfg.torch_threads): the env processes need the cores
@@ -117,13 +121,13 @@ def main() -> None:
         if "raw" not in args.skip:
             row["raw"] = random_steps_per_second(build_config({**data, "env": {**data["env"], "num_envs": n}}).env,
                                                  args.seconds)
-        if "drivelab_lockstep" not in args.skip:
-            row["drivelab_lockstep"] = drivelab_speed(data, n, 1, args.steps)
         if "drivelab" not in args.skip:
             row["drivelab"] = drivelab_speed(data, n, None, args.steps)
+        if "drivelab_groups" not in args.skip and n > 1:
+            row["drivelab_groups"] = drivelab_speed(data, n, n, args.steps)
         if "sb3" not in args.skip:
             row["sb3"] = sb3_speed(data, n, args.steps)
-        for name in ("drivelab_lockstep", "drivelab", "sb3"):
+        for name in ("drivelab", "drivelab_groups", "sb3"):
             if name in row and "raw" in row:
                 row[f"{name}_vs_raw"] = row[name] / row["raw"]
         print(json.dumps(row), flush=True)
