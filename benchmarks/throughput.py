@@ -10,11 +10,18 @@ For each number of env processes N (default 1, 2 and 4), on the env of a PPO con
   ``SubprocVecEnv``, with the config's rollout length, minibatch, epochs, network, Gaussian std
   and normalisation (``VecNormalize``).
 
-Both sides use one torch thread on the CPU and the config's activation. Training speeds are steady state: env steps per second from the end of the first rollout to the
-end of the run (process start-up and the first rollout excluded), updates included. Run it with
-nothing else on the machine:
+Both sides use one torch thread on the CPU while collecting and the config's activation;
+drivelab's update runs with the config's ``update_threads`` (the env workers wait during
+updates), SB3's with one thread (``--sb3-threads``). Training speeds are steady state: env steps
+per second from the end of the first rollout to the end of the run (process start-up and the
+first rollout excluded), updates included.
 
-    python benchmarks/throughput.py --config configs/ppo_metadrive_drive.yaml --steps 12288 --out throughput.json
+This machine's speed drifts by 20% and more within an hour (shared cores), so each training
+measurement is paired with a raw measurement taken just before it, and the ratio to raw is taken
+per pair; ``--repeats`` pairs per contender, the JSON keeps every pair and the medians. Run it
+with nothing else on the machine:
+
+    python benchmarks/throughput.py --config configs/ppo_metadrive_drive.yaml --steps 12288 --repeats 2 --out throughput.json
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ import argparse
 import csv
 import functools
 import json
+import statistics
 import sys
 import tempfile
 import time
@@ -62,7 +70,7 @@ def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int) ->
     return steady_steps_per_second(rows)
 
 
-def sb3_speed(data: dict, num_envs: int, steps: int) -> float:
+def sb3_speed(data: dict, num_envs: int, steps: int, threads: int = 1) -> float:
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import SubprocVecEnv, VecNormalize
@@ -87,6 +95,7 @@ def sb3_speed(data: dict, num_envs: int, steps: int) -> float:
             return True
 
     marks = Marks()
+    torch.set_num_threads(threads)
     model = PPO("MlpPolicy", envs, learning_rate=hp.lr, n_steps=hp.num_steps,
                 batch_size=hp.num_steps * num_envs // hp.num_minibatches, n_epochs=hp.update_epochs, gamma=hp.gamma,
                 gae_lambda=hp.gae_lambda, clip_range=hp.clip_coef, ent_coef=hp.ent_coef, vf_coef=hp.vf_coef,
@@ -97,6 +106,7 @@ def sb3_speed(data: dict, num_envs: int, steps: int) -> float:
         model.learn(total_timesteps=steps, callback=marks)
     finally:
         envs.close()
+        torch.set_num_threads(1)
     # from the start of the second rollout (after the first update), as drivelab's first log row
     return steady_steps_per_second(marks.rows[1:])
 
@@ -106,34 +116,41 @@ def main() -> None:
     parser.add_argument("--config", default="configs/ppo_metadrive_drive.yaml")
     parser.add_argument("--num-envs", type=int, nargs="+", default=[1, 2, 4])
     parser.add_argument("--steps", type=int, default=12288, help="training steps per measurement")
-    parser.add_argument("--seconds", type=float, default=40.0, help="random-action measurement time")
+    parser.add_argument("--seconds", type=float, default=25.0, help="random-action measurement time")
+    parser.add_argument("--repeats", type=int, default=2, help="(raw, training) pairs per contender")
     parser.add_argument("--num-steps", type=int, help="override ppo.num_steps (rollout length per env)")
-    parser.add_argument("--skip", nargs="*", default=[], choices=["raw", "drivelab", "drivelab_groups", "sb3"])
+    parser.add_argument("--sb3-threads", type=int, default=1, help="torch threads for SB3 (collection and update)")
+    parser.add_argument("--skip", nargs="*", default=[], choices=["drivelab", "drivelab_groups", "sb3"])
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args()
     torch.set_num_threads(1)  # as drivelab's trainer (cfg.torch_threads): the env processes need the cores
     data = read_yaml(args.config)
     if args.num_steps:
         set_dotted(data, "ppo.num_steps", args.num_steps)
+    contenders = {
+        "drivelab": lambda n: drivelab_speed(data, n, None, args.steps),
+        "drivelab_groups": lambda n: drivelab_speed(data, n, n, args.steps),
+        "sb3": lambda n: sb3_speed(data, n, args.steps, args.sb3_threads),
+    }
     results = []
     for n in args.num_envs:
-        row: dict[str, float | int] = {"num_envs": n}
-        if "raw" not in args.skip:
-            row["raw"] = random_steps_per_second(build_config({**data, "env": {**data["env"], "num_envs": n}}).env,
-                                                 args.seconds)
-        if "drivelab" not in args.skip:
-            row["drivelab"] = drivelab_speed(data, n, None, args.steps)
-        if "drivelab_groups" not in args.skip and n > 1:
-            row["drivelab_groups"] = drivelab_speed(data, n, n, args.steps)
-        if "sb3" not in args.skip:
-            row["sb3"] = sb3_speed(data, n, args.steps)
-        for name in ("drivelab", "drivelab_groups", "sb3"):
-            if name in row and "raw" in row:
-                row[f"{name}_vs_raw"] = row[name] / row["raw"]
-        print(json.dumps(row), flush=True)
+        env_cfg = build_config({**data, "env": {**data["env"], "num_envs": n}}).env
+        row: dict = {"num_envs": n, "pairs": {}}
+        for name, measure in contenders.items():
+            if name in args.skip or (name == "drivelab_groups" and n == 1):
+                continue
+            pairs = []
+            for _ in range(args.repeats):
+                raw = random_steps_per_second(env_cfg, args.seconds)
+                pairs.append({"raw": raw, "trained": measure(n)})
+            row["pairs"][name] = pairs
+            row[name] = statistics.median(p["trained"] for p in pairs)
+            row[f"{name}_vs_raw"] = statistics.median(p["trained"] / p["raw"] for p in pairs)
+        row["raw"] = statistics.median(p["raw"] for pairs in row["pairs"].values() for p in pairs)
+        print(json.dumps({k: v for k, v in row.items() if k != "pairs"}), flush=True)
         results.append(row)
     text = json.dumps({"benchmark": "onpolicy-throughput", "config": args.config, "steps": args.steps,
-                       "results": results}, indent=1)
+                       "repeats": args.repeats, "sb3_threads": args.sb3_threads, "results": results}, indent=1)
     print(text)
     if args.out:
         Path(args.out).write_text(text + "\n")

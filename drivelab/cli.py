@@ -32,8 +32,8 @@ from drivelab.config import EnvConfig, parse_value
 from drivelab.errors import DrivelabError
 
 # Fields that may change when a run is resumed; anything else would change the experiment.
-RESUMABLE_FIELDS = ("steps", "max_minutes", "torch_threads", "checkpoint_every", "keep_checkpoints", "stats_window",
-                    "log_every", "eval", "device", "track", "ray_address")
+RESUMABLE_FIELDS = ("steps", "max_minutes", "torch_threads", "update_threads", "checkpoint_every", "keep_checkpoints",
+                    "stats_window", "log_every", "eval", "device", "track", "ray_address")
 
 
 def parse_overrides(tokens: list[str]) -> dict[str, Any]:

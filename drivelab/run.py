@@ -79,11 +79,34 @@ class Section:
         self.seconds += time.perf_counter() - self._started
 
 
+class UpdateSection(Section):
+    """The gradient-update section: timed, and run with ``threads`` torch intra-op threads
+    (the env workers are idle while the trainer updates, so the update may use their cores;
+    collection goes back to ``torch_threads``, where more threads would fight the workers)."""
+
+    __slots__ = ("threads", "_outside")
+
+    def __init__(self, threads: int | None = None) -> None:
+        super().__init__()
+        self.threads, self._outside = threads, 1
+
+    def __enter__(self) -> None:
+        if self.threads is not None:
+            self._outside = torch.get_num_threads()
+            torch.set_num_threads(self.threads)
+        super().__enter__()
+
+    def __exit__(self, *exc: object) -> None:
+        super().__exit__(*exc)
+        if self.threads is not None:
+            torch.set_num_threads(self._outside)
+
+
 class Timing:
     """Where wall time goes between two logs: env stepping, gradient updates, the rest."""
 
-    def __init__(self) -> None:
-        self.env, self.update = Section(), Section()
+    def __init__(self, update_threads: int | None = None) -> None:
+        self.env, self.update = Section(), UpdateSection(update_threads)
         self._since = time.perf_counter()
 
     def fractions(self) -> dict[str, float]:
@@ -114,7 +137,7 @@ class Run:
         self.step = 0
         self.iteration = 0
         self.episodes = EpisodeTracker(cfg.env.num_envs, cfg.stats_window)
-        self.timing = Timing()
+        self.timing = Timing(cfg.update_threads)
         self._resume_from = resume_from
         self._last_checkpoint_step = -1
         self._best: list[float] | None = None   # (best_metric, return) of checkpoints/best

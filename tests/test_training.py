@@ -126,3 +126,15 @@ def test_max_minutes_stops_training_with_a_final_checkpoint(tmp_path):
     train(cfg, progress=False)
     last = resolve_checkpoint(tmp_path / "t")
     assert 0 < int(last.name.split("_")[-1]) < 10**6
+
+
+def test_updates_run_with_update_threads_and_collection_goes_back_to_torch_threads():
+    from drivelab.run import Timing
+
+    outside = torch.get_num_threads()
+    timing = Timing(update_threads=outside + 1)
+    with timing.update:
+        assert torch.get_num_threads() == outside + 1
+    assert torch.get_num_threads() == outside and timing.update.seconds > 0
+    with Timing().update:            # None: the update keeps torch_threads
+        assert torch.get_num_threads() == outside

@@ -28,7 +28,7 @@ from drivelab.errors import DrivelabError
 from drivelab.losses import approx_kl, clipped_surrogate_loss, explained_variance, value_loss
 from drivelab.nets import ActorCritic, limit_log_std
 from drivelab.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
-from drivelab.optim import gradient_step, linear_decay, set_learning_rate
+from drivelab.optim import adam, gradient_step, linear_decay, set_learning_rate
 from drivelab.run import Run
 
 
@@ -65,13 +65,13 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutB
         order = torch.randperm(size, generator=generator)
         for start in range(0, size - minibatch + 1, minibatch):
             idx = order[start:start + minibatch]
-            dist = agent.distribution(batch.obs[idx])
+            dist, value = agent.distribution_and_value(batch.obs[idx])
             log_prob = dist.log_prob(batch.actions[idx])
             adv = batch.advantages[idx]
             if hp.norm_adv:
                 adv = (adv - adv.mean()) / (adv.std() + 1e-8)
             pg_loss, ratio = clipped_surrogate_loss(log_prob, batch.log_probs[idx], adv, hp.clip_coef)
-            v_loss = value_loss(agent.value(batch.obs[idx]), batch.values[idx], batch.returns[idx],
+            v_loss = value_loss(value, batch.values[idx], batch.returns[idx],
                                 hp.clip_coef if hp.clip_vloss else None)
             entropy = dist.entropy().mean()
             loss = pg_loss + hp.vf_coef * v_loss - hp.ent_coef * entropy
@@ -93,7 +93,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
     collector = RolloutCollector(cfg.env, run, num_steps=hp.num_steps, gamma=hp.gamma, gae_lambda=hp.gae_lambda,
                                  scale_rewards=hp.normalize_reward)
     agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
-    optimizer = torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
+    optimizer = adam(agent.parameters(), lr=hp.lr, eps=1e-5)
     run.start({"policy": agent, **collector.modules()}, {"policy": optimizer}, policy=agent)
     try:
         while not run.done:
