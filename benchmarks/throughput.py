@@ -11,7 +11,8 @@ For each number of env processes N (default 1, 2 and 4), on the env of a PPO con
   and normalisation (``VecNormalize``).
 
 Both sides use one torch thread on the CPU while collecting and the config's activation;
-drivelab's update runs with the config's ``update_threads`` (the env workers wait during
+drivelab's update runs with the config's ``update_threads`` (``--update-threads N`` adds
+``drivelab_update_threads``, the same config with N update threads: the env workers wait during
 updates), SB3's with one thread (``--sb3-threads``). Training speeds are steady state: env steps
 per second from the end of the first rollout to the end of the run (process start-up and the
 first rollout excluded), updates included.
@@ -120,7 +121,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2, help="(raw, training) pairs per contender")
     parser.add_argument("--num-steps", type=int, help="override ppo.num_steps (rollout length per env)")
     parser.add_argument("--sb3-threads", type=int, default=1, help="torch threads for SB3 (collection and update)")
-    parser.add_argument("--skip", nargs="*", default=[], choices=["drivelab", "drivelab_groups", "sb3"])
+    parser.add_argument("--update-threads", type=int, help="also measure drivelab with this update_threads "
+                        "(drivelab_update_threads)")
+    parser.add_argument("--skip", nargs="*", default=[], choices=["drivelab", "drivelab_groups", "sb3",
+                                                                   "drivelab_update_threads"])
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args()
     torch.set_num_threads(1)  # as drivelab's trainer (cfg.torch_threads): the env processes need the cores
@@ -132,6 +136,9 @@ def main() -> None:
         "drivelab_groups": lambda n: drivelab_speed(data, n, n, args.steps),
         "sb3": lambda n: sb3_speed(data, n, args.steps, args.sb3_threads),
     }
+    if args.update_threads:
+        contenders["drivelab_update_threads"] = lambda n: drivelab_speed({**data, "update_threads": args.update_threads},
+                                                                         n, None, args.steps)
     results = []
     for n in args.num_envs:
         env_cfg = build_config({**data, "env": {**data["env"], "num_envs": n}}).env

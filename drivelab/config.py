@@ -167,8 +167,9 @@ class TrainConfig:
     # Intra-op threads for torch. 1 is fastest when env subprocesses share a few cores.
     torch_threads: int = 1
     # Intra-op threads inside gradient updates (None: torch_threads). The env workers wait
-    # while the trainer updates, so the update may use every core this run has to itself
-    # (2 on a 2-core machine: PPO's update ~1.6x faster); keep None when other jobs share the cores.
+    # while the trainer updates, so the update may use every core this run has to itself (2 on
+    # a 2-core machine: PPO's update ~1.3x faster). Other float results, so another random stream
+    # than with None; keep None when other jobs share the cores.
     update_threads: int | None = None
     device: str = "cpu"
     checkpoint_every: int = 50_000

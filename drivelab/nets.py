@@ -239,16 +239,15 @@ class ActorCritic(nn.Module):
     def prepare(self, obs: torch.Tensor) -> torch.Tensor:
         return self.obs_rms.normalize(obs.float()) if self.obs_rms is not None else obs
 
-    def distribution(self, obs: torch.Tensor, *, prepared: bool = False) -> Distribution:
-        """pi(.|obs); ``prepared``: ``obs`` went through :meth:`prepare` already."""
-        return self.actor.distribution(obs if prepared else self.prepare(obs))
+    def distribution(self, obs: torch.Tensor) -> Distribution:
+        return self.actor.distribution(self.prepare(obs))
 
-    def value(self, obs: torch.Tensor, *, prepared: bool = False) -> torch.Tensor:
-        """(B,) state values; ``prepared`` as in :meth:`distribution`."""
-        return self.critic(obs if prepared else self.prepare(obs)).squeeze(-1)
+    def value(self, obs: torch.Tensor) -> torch.Tensor:
+        """(B,) state values."""
+        return self.critic(self.prepare(obs)).squeeze(-1)
 
     def distribution_and_value(self, obs: torch.Tensor) -> tuple[Distribution, torch.Tensor]:
-        """pi(.|obs) and the (B,) values, normalising the observations once."""
+        """pi(.|obs) and the (B,) values, normalising the observations once (the rollout's step)."""
         prepared = self.prepare(obs)
         return self.actor.distribution(prepared), self.critic(prepared).squeeze(-1)
 

@@ -146,12 +146,6 @@ class RolloutCollector:
                 obs, reward, terminated, truncated, info = self.envs.receive(group)
             envs, t = self.envs.slices[group], row[group]
             self.obs[envs] = obs
-            # The group's next actions go out first: the envs simulate while the trainer records.
-            row[group] = t + 1
-            if t + 1 < num_steps:
-                self._act(agent, group, t + 1)
-            else:
-                in_flight.remove(group)
             done = terminated | truncated
             self.run.episodes.step(reward, done, info, first_env=envs.start)
             buf.rewards[t, envs] = reward
@@ -163,6 +157,11 @@ class RolloutCollector:
             if cut.any():
                 final_obs = torch.as_tensor(np.stack(info["final_obs"][cut]), device=buf.values.device)
                 buf.next_values[t, envs][cut] = agent.value(final_obs).cpu().numpy()
+            row[group] = t + 1
+            if t + 1 < num_steps:
+                self._act(agent, group, t + 1)
+            else:
+                in_flight.remove(group)
         if self.reward_rms is not None:
             self._scale_rewards(buf)
         buf.next_values[:-1] = np.where(buf.dones[:-1], buf.next_values[:-1], buf.values[1:].cpu().numpy())
@@ -171,22 +170,17 @@ class RolloutCollector:
         return buf.batch(self.gamma, self.gae_lambda)
 
     def _act(self, agent: ActorCritic, group: int, t: int) -> None:
-        """Sample the group's actions for its current observations and send them; then, while
-        the group's envs simulate, store row t (observation, action, log-prob, V(s_t)).
-
-        Only the actor stands between an env's result and its next action: the critic's
-        forward pass and the log-prob come after the send (with one env, the env process
-        would otherwise idle through them every step)."""
+        """Sample the group's actions for its current observations, send them, and store row t
+        (observation, action, log-prob, V(s_t)) while the group's envs simulate."""
         buf, envs = self.buffer, self.envs.slices[group]
         obs = torch.as_tensor(self.obs[envs], device=buf.values.device)
-        prepared = agent.prepare(obs)
-        dist = agent.distribution(prepared, prepared=True)
+        dist, value = agent.distribution_and_value(obs)
         action = sample(dist, self.generators[group % len(self.generators)])
         self.envs.send(group, agent.to_env(action))
         buf.obs[t, envs] = obs
         buf.actions[t, envs] = action
         buf.log_probs[t, envs] = dist.log_prob(action)
-        buf.values[t, envs] = agent.value(prepared, prepared=True)
+        buf.values[t, envs] = value
 
     def _scale_rewards(self, buf: RolloutBuffer) -> None:
         """Divide the rollout's rewards by the running std of the discounted return.

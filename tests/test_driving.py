@@ -315,8 +315,7 @@ def test_a_short_metadrive_run_drives_further_than_random(tmp_path):
     from drivelab.config import EnvConfig, read_yaml
 
     shipped = read_yaml("configs/ppo_metadrive_demo.yaml")
-    # update_threads 1: the other pytest worker shares the cores (two threads would fight it)
-    cfg = build_config({**shipped, "steps": 30_000, "seed": 0, "run_dir": str(tmp_path / "md"), "update_threads": 1,
+    cfg = build_config({**shipped, "steps": 30_000, "seed": 0, "run_dir": str(tmp_path / "md"),
                         "ppo": {**shipped["ppo"], "num_steps": 512, "num_minibatches": 8, "gamma": 0.99,
                                                 "log_std_final": None}})
     train(cfg, progress=False)
