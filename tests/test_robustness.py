@@ -6,8 +6,10 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
+import numpy as np
 import pytest
 
 from drivelab.checkpoint import list_checkpoints
@@ -52,6 +54,43 @@ def test_a_signal_stops_the_run_with_a_checkpoint_that_resumes(sig, env, tmp_pat
                               str(step + 512), "--no-progress"], capture_output=True, text=True, timeout=180)
     assert resumed.returncode == 0, resumed.stderr
     assert int(list_checkpoints(run_dir)[-1].name.split("_")[-1]) >= step + 512
+
+
+@pytest.mark.parametrize("moment", ["between two sends", "after the results were read"])
+def test_an_interrupt_mid_step_closes_the_workers_quietly(moment, monkeypatch, capfd):
+    """Ctrl-C can land while gymnasium sends actions to its workers (one has its action, the
+    other not) or reads their results: close() must neither hang nor leave a worker writing
+    into a closed pipe (a traceback on the user's terminal, as CI once saw)."""
+    import gymnasium.vector.async_vector_env as async_vector_env
+    from gymnasium.vector import AutoresetMode
+
+    from drivelab.config import EnvConfig
+    from drivelab.envs import make_vector_env
+
+    envs = make_vector_env(EnvConfig(id="CartPole-v1", num_envs=2, backend="async"),
+                           autoreset_mode=AutoresetMode.NEXT_STEP)
+    envs.reset(seed=0)
+    processes = list(envs.envs.processes)
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    if moment == "between two sends":
+        def first_action_only(space, actions):
+            yield actions[0]
+            interrupt()
+        monkeypatch.setattr(async_vector_env, "iterate", first_action_only)
+    else:
+        monkeypatch.setattr(async_vector_env.AsyncVectorEnv, "_raise_if_errors", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        envs.step(np.zeros(2, dtype=np.int64))
+    closing = threading.Thread(target=envs.close, daemon=True)  # a hung close fails the test, not the suite
+    closing.start()
+    closing.join(timeout=10)
+    assert not closing.is_alive(), "close() hangs waiting for a result that was already read"
+    time.sleep(0.5)  # a worker that outlived its pipe would print by now
+    assert not any(p.is_alive() for p in processes)
+    assert "Traceback" not in capfd.readouterr().err
 
 
 def test_a_second_writer_is_refused(tmp_path):

@@ -73,8 +73,14 @@ class SupervisedVectorEnv(VectorEnv):
         self._steps = 0
         self._pending_error: Exception | None = None
         self._last_obs = None
+        # True while actions or results are half sent or half read. A Ctrl-C (or SIGTERM, which
+        # drivelab turns into one) there leaves gymnasium's pipes out of step: a worker may owe a
+        # step result that close() would take for its goodbye, or owe nothing while close()
+        # waits for it. close() then stops the workers instead of talking to them.
+        self._mid_exchange = False
 
     def reset(self, *, seed=None, options=None):
+        self._mid_exchange = True
         try:
             self.envs.reset_async(seed=seed, options=options)
             with warnings.catch_warnings():
@@ -83,18 +89,22 @@ class SupervisedVectorEnv(VectorEnv):
         except Exception as exc:  # noqa: BLE001 - whatever the simulator raised, or a dead/hung worker
             self._restart(exc)
             obs, info = self.envs.reset(seed=seed)  # fresh workers: every env starts anew
+        self._mid_exchange = False
         self._last_obs = obs
         return obs, info
 
     def step_async(self, actions) -> None:
         self._pending_error = None
+        self._mid_exchange = True
         try:
             self.envs.step_async(actions)
         except Exception as exc:  # noqa: BLE001
             self._pending_error = exc
+        self._mid_exchange = False
 
     def step_wait(self):
         self._steps += 1
+        self._mid_exchange = True
         try:
             if self._pending_error is not None:
                 raise self._pending_error
@@ -102,7 +112,8 @@ class SupervisedVectorEnv(VectorEnv):
                 warnings.simplefilter("ignore")
                 result = self.envs.step_wait(timeout=self.step_timeout)
         except Exception as exc:  # noqa: BLE001
-            return self._cut_episodes(exc)
+            result = self._cut_episodes(exc)
+        self._mid_exchange = False
         self._last_obs = result[0]
         return result
 
@@ -151,9 +162,26 @@ class SupervisedVectorEnv(VectorEnv):
         return self.envs.call(name, *args, **kwargs)
 
     def close(self, **kwargs) -> None:
+        if self._mid_exchange:
+            self._stop_workers()
+            return
         try:
-            with warnings.catch_warnings():  # closing mid-step after Ctrl-C: gymnasium waits, and warns
+            with warnings.catch_warnings():  # closing between a step's send and its wait: gymnasium waits, and warns
                 warnings.simplefilter("ignore")
                 self.envs.close(**kwargs)
         except Exception:  # noqa: BLE001 - closing after a failure
             self.envs.close(terminate=True)
+
+    def _stop_workers(self) -> None:
+        """End the workers without a word (SIGTERM; a spawned worker has no handler for it, so it
+        exits at once and prints nothing) and close our ends of their pipes."""
+        envs = self.envs
+        if envs.closed:
+            return
+        for process in envs.processes:
+            process.terminate()
+        for process in envs.processes:
+            process.join()
+        for pipe in envs.parent_pipes:
+            pipe.close()
+        envs.closed = True  # its __del__ must not try to close it again
