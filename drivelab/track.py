@@ -89,12 +89,14 @@ class Tracker:
 
         self.run_dir = Path(run_dir)
         self.csv_path = self.run_dir / "metrics.csv"
-        if resume_step is not None and self.csv_path.exists():
+        resuming = resume_step is not None and self.csv_path.exists()
+        if resuming:
             self._truncate_csv(resume_step)
-        new_file = not self.csv_path.exists()
-        self._csv_file = open(self.csv_path, "a", newline="")
+        # A fresh run starts a fresh file: one may be there from a run killed before its first
+        # checkpoint (empty, or a torn header), which is started afresh.
+        self._csv_file = open(self.csv_path, "a" if resuming else "w", newline="")
         self._csv = csv.writer(self._csv_file)
-        if new_file:
+        if not resuming:
             self._csv.writerow(["step", "time", "name", "value"])
         # purge what was logged after the checkpoint (the checkpoint's own step stays, as in the CSV)
         self.tb = SummaryWriter(str(self.run_dir / "tb"), purge_step=None if resume_step is None else resume_step + 1)

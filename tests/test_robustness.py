@@ -123,6 +123,24 @@ def _short_run(run_dir):
                         "env": {"id": "CartPole-v1", "num_envs": 2}, "ppo": {"num_steps": 256}}), progress=False)
 
 
+@pytest.mark.parametrize("left_behind", ["", "step,ti", "step,time,name,value\n0,17.5,charts/l"])
+def test_a_run_killed_before_its_first_checkpoint_starts_afresh(left_behind, tmp_path):
+    """kill -9 before the first checkpoint can leave metrics.csv empty or torn; --resume then
+    starts the run afresh, with a whole metrics file."""
+    from drivelab.api import build_config, last_metrics, train
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "metrics.csv").write_text(left_behind)
+    cfg = build_config({"algo": "ppo", "steps": 512, "seed": 0, "run_dir": str(run_dir),
+                        "env": {"id": "CartPole-v1", "num_envs": 2}, "ppo": {"num_steps": 128}})
+    train(cfg, resume=True, progress=False)
+    header, *rows = (run_dir / "metrics.csv").read_text().splitlines()
+    assert header == "step,time,name,value" and rows
+    assert all(len(row.split(",")) == 4 and row.split(",")[0].isdigit() for row in rows)
+    assert last_metrics(run_dir)["perf/steps_per_s"] > 0
+
+
 def test_damaged_files_are_skipped_or_refused_in_one_line(tmp_path, run_cli):
     run_dir = tmp_path / "run"
     _short_run(run_dir)

@@ -176,6 +176,9 @@ class SupervisedVectorEnv(VectorEnv):
         """End the workers without a word (SIGTERM; a spawned worker has no handler for it, so it
         exits at once and prints nothing) and close our ends of their pipes."""
         envs = self.envs
+        if not isinstance(envs, AsyncVectorEnv):  # a stand-in without worker processes
+            envs.close(terminate=True)
+            return
         if envs.closed:
             return
         for process in envs.processes:
