@@ -143,17 +143,12 @@ class SupervisedVectorEnv(VectorEnv):
         try:
             self.budget.spend(self._steps, exc)
         except DrivelabError:
-            self.close(terminate=True)
+            self._stop_workers()
             raise
         self.restarts += 1
         print(f"drivelab: warning: env worker failed ({error_line(exc)}); restarting the envs, "
               "their episodes end as truncated", file=sys.stderr)
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                self.envs.close(terminate=True)
-        except Exception:  # noqa: BLE001 - the old workers may be dead already
-            self.envs.closed = True  # nothing left to close; keeps its __del__ from trying again
+        self._stop_workers()  # a failed or hung exchange: the pipes are out of step, no goodbye
         self.envs = self.make()
         if self.on_restart is not None:
             self.on_restart(self.restarts)
@@ -170,11 +165,12 @@ class SupervisedVectorEnv(VectorEnv):
                 warnings.simplefilter("ignore")
                 self.envs.close(**kwargs)
         except Exception:  # noqa: BLE001 - closing after a failure
-            self.envs.close(terminate=True)
+            self._stop_workers()
 
     def _stop_workers(self) -> None:
         """End the workers without a word (SIGTERM; a spawned worker has no handler for it, so it
-        exits at once and prints nothing) and close our ends of their pipes."""
+        exits at once and prints nothing; a dead one is simply reaped) and close our ends of
+        their pipes. For an interrupted or failed exchange, where a close handshake cannot work."""
         envs = self.envs
         if not isinstance(envs, AsyncVectorEnv):  # a stand-in without worker processes
             envs.close(terminate=True)
@@ -186,5 +182,6 @@ class SupervisedVectorEnv(VectorEnv):
         for process in envs.processes:
             process.join()
         for pipe in envs.parent_pipes:
-            pipe.close()
+            if pipe is not None:  # gymnasium drops the pipe of a worker that raised
+                pipe.close()
         envs.closed = True  # its __del__ must not try to close it again
