@@ -6,6 +6,8 @@ For each number of env processes N (default 1, 2 and 4), on the env of a PPO con
 * ``drivelab``: drivelab's PPO as configured by default: all envs step together (lockstep);
 * ``drivelab_groups``: drivelab's PPO with ``env.step_groups: N``, one step group per env
   (drivelab.envs.groups: each group steps while the trainer chooses the others' actions);
+* ``drivelab_overlap``: drivelab's PPO with ``ppo.overlap_update: true`` (each update runs in a
+  background thread while the envs collect the next rollout, see drivelab/algos/ppo.py);
 * ``sb3``: Stable-Baselines3's PPO (``pip install stable-baselines3``) on the same env factory in a
   ``SubprocVecEnv``, with the config's rollout length, minibatch, epochs, network, Gaussian std
   and normalisation (``VecNormalize``).
@@ -54,8 +56,10 @@ def steady_steps_per_second(rows: list[tuple[int, float]]) -> float:
     return (step1 - step0) / (time1 - time0)
 
 
-def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int) -> float:
+def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int, overlap: bool = False) -> float:
     data = json.loads(json.dumps(data))
+    if overlap:
+        set_dotted(data, "ppo.overlap_update", True)
     set_dotted(data, "env.num_envs", num_envs)
     set_dotted(data, "env.step_groups", groups)
     with tempfile.TemporaryDirectory() as tmp:
@@ -68,6 +72,11 @@ def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int) ->
         train(cfg, progress=False)
         with open(Path(cfg.run_dir) / "metrics.csv") as f:
             rows = [(int(r["step"]), float(r["time"])) for r in csv.DictReader(f) if r["name"] == "perf/steps_per_s"]
+    if overlap:
+        # Iteration k ends once update k is done and rollout k+1 collected meanwhile, but logs the
+        # steps of rollout k: the last iteration has no rollout to collect. Without its row, the
+        # span holds as many collections as the steps it counts.
+        rows = rows[:-1]
     return steady_steps_per_second(rows)
 
 
@@ -123,8 +132,8 @@ def main() -> None:
     parser.add_argument("--sb3-threads", type=int, default=1, help="torch threads for SB3 (collection and update)")
     parser.add_argument("--update-threads", type=int, help="also measure drivelab with this update_threads "
                         "(drivelab_update_threads)")
-    parser.add_argument("--skip", nargs="*", default=[], choices=["drivelab", "drivelab_groups", "sb3",
-                                                                   "drivelab_update_threads"])
+    parser.add_argument("--skip", nargs="*", default=[], choices=["drivelab", "drivelab_groups", "drivelab_overlap",
+                                                                   "sb3", "drivelab_update_threads"])
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args()
     torch.set_num_threads(1)  # as drivelab's trainer (cfg.torch_threads): the env processes need the cores
@@ -134,6 +143,7 @@ def main() -> None:
     contenders = {
         "drivelab": lambda n: drivelab_speed(data, n, None, args.steps),
         "drivelab_groups": lambda n: drivelab_speed(data, n, n, args.steps),
+        "drivelab_overlap": lambda n: drivelab_speed(data, n, None, args.steps, overlap=True),
         "sb3": lambda n: sb3_speed(data, n, args.steps, args.sb3_threads),
     }
     if args.update_threads:

@@ -363,6 +363,8 @@ def _validate(cfg: TrainConfig) -> None:
         ("max_minutes", cfg.max_minutes is None or cfg.max_minutes > 0, "must be > 0"),
         ("torch_threads", cfg.torch_threads >= 1, "must be >= 1"),
         ("update_threads", cfg.update_threads is None or cfg.update_threads >= 1, "must be >= 1"),
+        ("update_threads", cfg.update_threads is None or not getattr(cfg.algo_params, "overlap_update", False),
+         "must be left unset with ppo.overlap_update (the env workers are busy while that update runs)"),
         ("checkpoint_every", cfg.checkpoint_every >= 1, "must be >= 1"),
         ("keep_checkpoints", cfg.keep_checkpoints >= 1, "must be >= 1"),
         ("stats_window", cfg.stats_window >= 1, "must be >= 1"),

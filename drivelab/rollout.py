@@ -104,6 +104,10 @@ class RolloutCollector:
     own random generator, so a rollout's data do not depend on that order (with one group,
     torch's global generator, as before groups existed).
 
+    With ``buffers=2`` consecutive rollouts alternate between two buffers, so a batch stays
+    intact while the next rollout is collected (PPO's ``overlap_update`` trains on one while the
+    envs fill the other).
+
     Episode returns, lengths and driving metrics go to ``run.episodes``; time spent waiting on
     the envs to ``run.timing.env``. With ``scale_rewards`` the rewards are divided by the running
     std of the discounted return (Engstrom et al. 2020), so the critic's targets keep a stable
@@ -111,13 +115,15 @@ class RolloutCollector:
     """
 
     def __init__(self, env_cfg: EnvConfig, run: Run, *, num_steps: int, gamma: float, gae_lambda: float,
-                 scale_rewards: bool):
+                 scale_rewards: bool, buffers: int = 1):
         self.envs = EnvGroups(env_cfg, env_cfg.resolved_step_groups(), autoreset_mode=AutoresetMode.SAME_STEP,
                               on_restart=run.note_env_restart)
         self.run, self.gamma, self.gae_lambda = run, gamma, gae_lambda
         n = env_cfg.num_envs
         self.obs_space, self.act_space = self.envs.single_observation_space, self.envs.single_action_space
-        self.buffer = RolloutBuffer(num_steps, n, self.obs_space, self.act_space, run.device)
+        self.buffers = [RolloutBuffer(num_steps, n, self.obs_space, self.act_space, run.device) for _ in range(buffers)]
+        self.buffer = self.buffers[0]   # the one being filled
+        self.rollouts = 0
         self.steps_per_rollout = num_steps * n
         self.obs = self.envs.reset(run.reset_seeds(np.ones(n, bool)))
         self.generators: list[torch.Generator | None] = [None]
@@ -135,7 +141,9 @@ class RolloutCollector:
     def collect(self, agent: ActorCritic) -> RolloutBatch:
         """Fill the buffer with T steps of ``agent`` in each env; return them with GAE(lambda)
         advantages as a flat batch of B = T * N samples."""
-        buf, num_steps = self.buffer, len(self.buffer.rewards)
+        self.buffer = buf = self.buffers[self.rollouts % len(self.buffers)]
+        self.rollouts += 1
+        num_steps = len(buf.rewards)
         row = [0] * len(self.envs)             # the next row of each group
         for group in range(len(self.envs)):
             self._act(agent, group, 0)

@@ -35,6 +35,7 @@ def test_round_trip_through_yaml(tmp_path):
     ({"env": {"id": "CartPole-v1", "num_envs": 2, "step_groups": 2}}, "step_groups"),   # sync envs: no groups
     ({"algo": "ppo", "ppo": {"log_std_init": -1.0, "log_std_final": 0.0}}, "log_std_final"),
     ({"update_threads": 0}, "update_threads"),
+    ({"algo": "ppo", "update_threads": 2, "ppo": {"overlap_update": True}}, "update_threads"),
 ])
 def test_bad_fields_name_the_field(data, fragment):
     with pytest.raises(DrivelabError) as err:
