@@ -161,6 +161,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
             if hp.anneal_lr:
                 set_learning_rate(optimizer, linear_decay(hp.lr, run.step, cfg.steps))
             std_log = limit_log_std(agent.actor, hp, run.step, cfg.steps)  # optional std schedule
+            interrupted = False  # overlap_update: a Ctrl-C held back until the update in flight is counted
             if background is None:
                 # 1. Collect T steps in each of the N envs; GAE(lambda) advantages and critic targets.
                 batch = collector.collect(agent)
@@ -173,18 +174,18 @@ def train(cfg: TrainConfig, run: Run) -> None:
                 actor.load_state_dict(agent.state_dict())
                 batch = following if following is not None else collector.collect(actor)
                 job = background.submit(update, agent, optimizer, batch, hp, shuffle)
-                interrupted, following = False, None
+                following = None
                 try:
                     if run.step + collector.steps_per_rollout < cfg.steps:
                         following = collector.collect(actor)
-                except KeyboardInterrupt:  # first finish and count the update in flight (checkpoint)
+                except KeyboardInterrupt:
                     interrupted = True
                 with run.timing.update:  # the part of the update that collecting did not hide
                     stats, interrupted_while_waiting = wait_for(job)
-                if interrupted or interrupted_while_waiting:
-                    finish_iteration(batch, stats, std_log)
-                    raise KeyboardInterrupt
+                interrupted |= interrupted_while_waiting
             finish_iteration(batch, stats, std_log)
+            if interrupted:  # raised now, so the checkpoint that follows holds whole, counted updates
+                raise KeyboardInterrupt
     finally:
         if background is not None:
             background.shutdown()
