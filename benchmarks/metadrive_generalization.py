@@ -116,7 +116,10 @@ def main() -> None:
     args = parser.parse_args()
     run_dir = Path(args.run_dir)
     out = Path(args.out) if args.out else run_dir / "generalization.json"
-    wall = 0.0 if args.skip_train else train_run(args.config, run_dir, args.steps)
+    try:
+        wall = 0.0 if args.skip_train else train_run(args.config, run_dir, args.steps)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the run saved a checkpoint of this moment
+        raise SystemExit(f"interrupted; the same command resumes the run in {run_dir}") from None
     started = time.perf_counter()
     # A second call on the same output adds the new checkpoints (and baselines) only.
     previous = json.loads(out.read_text()) if out.exists() else {}

@@ -14,10 +14,13 @@ the algorithms imports them.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
+import signal
+import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -46,6 +49,34 @@ def build_config(data: dict, where: str = "config", algorithms: Mapping[str, Alg
 def default_run_dir(cfg: TrainConfig) -> str:
     safe_env = cfg.env.id.replace("/", "_")
     return str(Path("runs") / f"{cfg.algo}-{safe_env}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}")
+
+
+def raise_interrupt(signum, frame) -> None:
+    """SIGTERM (what a cluster scheduler sends) stops a run like Ctrl-C: checkpoint, then stop."""
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def stop_signals() -> Iterator[None]:
+    """While a run trains: SIGTERM raises ``KeyboardInterrupt`` like Ctrl-C, so the run stops
+    with a checkpoint of that moment instead of dying with up to ``checkpoint_every`` steps
+    lost; and a SIGINT that the shell ignores (background jobs, ``nohup ... &``) is heard again.
+    The previous handlers come back afterwards. A SIGTERM handler that the caller installed
+    (a cluster launcher's requeue, say) is left alone, and so is everything outside the main
+    thread, where Python allows no handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    if previous[signal.SIGTERM] == signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, raise_interrupt)
+    if previous[signal.SIGINT] == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 class TrainResult(NamedTuple):
@@ -101,8 +132,9 @@ def train(algo: str | TrainConfig, env: str | Mapping[str, Any] | None = None, *
     run = Run(cfg, resume_from=checkpoint, progress=progress)
     interrupted = False
     try:
-        spec.train(cfg, run)
-    except KeyboardInterrupt:  # Ctrl-C, or SIGTERM from a scheduler (the CLI turns it into this)
+        with stop_signals():
+            spec.train(cfg, run)
+    except KeyboardInterrupt:  # Ctrl-C, or SIGTERM from a scheduler (stop_signals turns it into this)
         interrupted = True
         run.checkpoint_now()
         raise

@@ -411,11 +411,6 @@ class OneLineErrors(argparse.ArgumentParser):
         sys.exit(2)
 
 
-def _terminate(signum, frame) -> None:
-    """SIGTERM (what a cluster scheduler sends) stops a run like Ctrl-C: checkpoint, then exit."""
-    raise KeyboardInterrupt
-
-
 def algo_help(name: str) -> str:
     """The hyperparameters of one algorithm: field, type, default, meaning."""
     from drivelab.config import field_docs
@@ -435,9 +430,9 @@ def main(argv: list[str] | None = None) -> None:
         algo = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--algo"), None) or \
             next((a.split("=", 1)[1] for a in argv if a.startswith("--algo=")), None)
     parser = build_parser(train_epilog=algo_help(algo) if algo in ALGORITHMS else None)
-    signal.signal(signal.SIGTERM, _terminate)
-    # Ctrl-C stops a run cleanly even when started from a shell that ignores SIGINT for
-    # background jobs (nohup ... &): Python leaves an inherited "ignore" in place otherwise.
+    # Every command stops on SIGTERM as on Ctrl-C (a run with a checkpoint, see api.stop_signals),
+    # and hears Ctrl-C even when started from a shell that ignores SIGINT for background jobs.
+    signal.signal(signal.SIGTERM, api.raise_interrupt)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     args, unknown = parser.parse_known_args(argv)
     run_dir = getattr(args, "resume", None) or getattr(args, "run_dir", None)

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from drivelab.checkpoint import list_checkpoints
+from drivelab.checkpoint import checkpoint_step, list_checkpoints
 
 TRAIN = ["-m", "drivelab", "train", "--algo", "ppo", "--env", "CartPole-v1", "--num-envs", "2", "--no-progress"]
 
@@ -54,6 +54,40 @@ def test_a_signal_stops_the_run_with_a_checkpoint_that_resumes(sig, env, tmp_pat
                               str(step + 512), "--no-progress"], capture_output=True, text=True, timeout=180)
     assert resumed.returncode == 0, resumed.stderr
     assert int(list_checkpoints(run_dir)[-1].name.split("_")[-1]) >= step + 512
+
+
+API_SCRIPT = """
+import signal, sys
+import drivelab
+try:
+    drivelab.train("ppo", "CartPole-v1", steps=10**8, num_envs=2, run_dir=sys.argv[1], progress=False)
+except KeyboardInterrupt:
+    restored = signal.getsignal(signal.SIGTERM) == signal.SIG_DFL and signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    sys.exit(3 if restored else 4)
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_signal_stops_a_run_of_the_python_api_with_a_checkpoint(sig, tmp_path):
+    """drivelab.train() in a script, started the way a shell starts a background job (SIGINT
+    ignored): a scheduler's SIGTERM or a SIGINT stops it with a checkpoint, as the CLI does, and
+    the script gets its own signal handlers back."""
+    run_dir = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-c", API_SCRIPT, str(run_dir)], stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        deadline = time.time() + 120
+        while not (run_dir / "metrics.csv").is_file() or (run_dir / "metrics.csv").stat().st_size < 500:
+            assert time.time() < deadline and proc.poll() is None
+            time.sleep(0.2)
+        os.kill(proc.pid, sig)
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 3, stderr
+    assert checkpoint_step(list_checkpoints(run_dir)[-1]) > 0
 
 
 @pytest.mark.parametrize("moment", ["between two sends", "after the results were read"])
