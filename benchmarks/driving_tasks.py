@@ -17,12 +17,10 @@ state of a long training run. The Duckietown task is measured only where its ext
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
-from pathlib import Path
 
-from training import random_steps_per_second  # benchmarks/ is on sys.path when run as a script
+from training import report, random_steps_per_second  # benchmarks/ is on sys.path when run as a script
 
 from drivelab.config import EnvConfig
 from drivelab.envs import make_env
@@ -77,10 +75,7 @@ def main() -> None:
                         f"vector_{args.num_envs}_envs_steps_per_s": vector})
         print(f"{name:<42}{single:8.0f} steps/s   {args.num_envs} envs: {vector:8.0f} steps/s   "
               f"(random episodes: {episode_length:.0f} steps)", file=sys.stderr)
-    text = json.dumps({"benchmark": "driving-tasks", "results": results}, indent=1)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
+    report({"benchmark": "driving-tasks", "results": results}, args.out)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,6 @@ Not a test.
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -18,6 +17,7 @@ import onnxruntime
 import torch
 
 import drivelab
+from training import report  # benchmarks/training.py
 
 
 def median_us(fn, obs: np.ndarray, calls: int) -> float:
@@ -56,10 +56,7 @@ def main() -> None:
                 "torchscript_us": median_us(lambda o: scripted(torch.as_tensor(o)), batch, args.calls),
                 "onnxruntime_us": median_us(lambda o: session.run(None, {"obs": o}), batch, args.calls),
             }
-    text = json.dumps(result, indent=1)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
+    report(result, args.out)
 
 
 if __name__ == "__main__":

@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import tempfile
 import time
 from pathlib import Path
 
 from drivelab.api import build_config, train
+from training import report  # benchmarks/training.py
 
 
 def measure(algo: str, updates: int, steps: int, compile_: bool) -> dict:
@@ -57,10 +57,7 @@ def main() -> None:
     results = {"benchmark": "offpolicy-speed", "env": "LunarLander-v3 (continuous)", "hidden": [400, 300],
                "batch_size": 256, "compile": args.compile,
                "algos": [measure(a, args.updates, args.steps, args.compile) for a in ("ddpg", "td3", "sac")]}
-    text = json.dumps(results, indent=1)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
+    report(results, args.out)
 
 
 if __name__ == "__main__":

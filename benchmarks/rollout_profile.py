@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import collections
 import functools
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -33,6 +32,7 @@ from drivelab.config import read_yaml, set_dotted
 from drivelab.envs.groups import EnvGroups
 from drivelab.episodes import EpisodeTracker
 from drivelab.rollout import RolloutCollector
+from training import report  # benchmarks/training.py
 
 SECONDS: dict[str, float] = collections.defaultdict(float)
 CALLS: collections.Counter = collections.Counter()
@@ -90,10 +90,7 @@ def main() -> None:
               "ms_per_env_step": {name: 1e3 * SECONDS[name] / cfg.steps for name in sorted(SECONDS, key=SECONDS.get,
                                                                                           reverse=True)},
               "calls": dict(CALLS)}
-    text = json.dumps(result, indent=1)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
+    report(result, args.out)
 
 
 if __name__ == "__main__":

@@ -45,7 +45,7 @@ from drivelab.api import build_config, train
 from drivelab.config import read_yaml, set_dotted
 from drivelab.envs import make_env
 from drivelab.nets import activation
-from training import random_steps_per_second  # benchmarks/training.py
+from training import report, random_steps_per_second  # benchmarks/training.py
 
 
 def steady_steps_per_second(rows: list[tuple[int, float]]) -> float:
@@ -166,11 +166,8 @@ def main() -> None:
         row["raw"] = statistics.median(p["raw"] for pairs in row["pairs"].values() for p in pairs)
         print(json.dumps({k: v for k, v in row.items() if k != "pairs"}), flush=True)
         results.append(row)
-    text = json.dumps({"benchmark": "onpolicy-throughput", "config": args.config, "steps": args.steps,
-                       "repeats": args.repeats, "sb3_threads": args.sb3_threads, "results": results}, indent=1)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
+    report({"benchmark": "onpolicy-throughput", "config": args.config, "steps": args.steps,
+            "repeats": args.repeats, "sb3_threads": args.sb3_threads, "results": results}, args.out)
 
 
 if __name__ == "__main__":

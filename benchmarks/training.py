@@ -33,6 +33,14 @@ from drivelab.config import read_yaml, set_dotted
 from drivelab.envs import make_vector_env
 
 
+def report(result: dict, out: str | None) -> None:
+    """Print a benchmark's JSON result, and write it to ``out`` when given."""
+    text = json.dumps(result, indent=1)
+    print(text)
+    if out:
+        Path(out).write_text(text + "\n")
+
+
 def load(args) -> object:
     data = read_yaml(args.config) if args.config else {}
     for key, value in (("algo", args.algo), ("env.id", args.env), ("env.num_envs", args.num_envs), ("seed", args.seed)):
@@ -123,10 +131,7 @@ def main() -> None:
     learn_p.add_argument("--no-progress", action="store_true")
     args = parser.parse_args()
     result = speed(args) if args.command == "speed" else learn(args)
-    text = json.dumps(result, indent=1)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
+    report(result, args.out)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import yaml
 
 from drivelab import __version__, api
 from drivelab.algos import ALGORITHMS

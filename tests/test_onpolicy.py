@@ -2,7 +2,6 @@
 
 import copy
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import torch
@@ -10,7 +9,6 @@ from gymnasium.vector import AutoresetMode
 
 from drivelab.algos import grpo
 from drivelab.api import build_config
-from drivelab.config import EnvConfig
 from drivelab.envs import env_spaces, make_vector_env
 from drivelab.episodes import EpisodeTracker
 from drivelab.api import evaluate_checkpoint

@@ -304,7 +304,6 @@ def test_a_crashed_or_hung_env_worker_is_restarted_and_the_run_completes(fail, t
 
 
 def test_an_env_that_keeps_failing_stops_the_run_with_its_error(tmp_path):
-    from drivelab.api import build_config, train
     from drivelab.envs.supervised import SupervisedVectorEnv
     from drivelab.errors import DrivelabError
 
