@@ -22,7 +22,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-
 from drivelab import __version__, api
 from drivelab.algos import ALGORITHMS
 from drivelab.baselines import BASELINES
