@@ -13,6 +13,11 @@ deterministically on ``--heldout`` validation scenarios (MetaDrive-validation-v0
 0..N-1) and ``--train-episodes`` training scenarios (the run's own env, seeds 0..M-1). Writes
 ``RUN/generalization.json`` and ``RUN/generalization.png`` (success rate and route completion
 against env steps, train vs held-out, baselines as reference lines), unless ``--out`` says where.
+
+``--stochastic`` plays every policy with sampled actions instead, the checkpoints and MetaDrive's
+expert alike (``"actions": "sampled"`` in the JSON). The default protocol takes the mode (as the
+expert's reference numbers do); sampling is worth knowing about, because a PPO or SAC policy
+trained with noise may drive better with it.
 """
 
 from __future__ import annotations
@@ -44,7 +49,7 @@ def train_run(config: str | None, run_dir: Path, steps: int | None) -> float:
 
 
 def evaluate_run(run_dir: Path, every: int, heldout: int, train_episodes: int, num_envs: int,
-                 from_step: int = 0, known: dict[int, dict] | None = None) -> list[dict]:
+                 from_step: int = 0, known: dict[int, dict] | None = None, deterministic: bool = True) -> list[dict]:
     """Evaluate the chosen checkpoints; rows in ``known`` (by step, same protocol) are reused."""
     paths = [p for p in list_checkpoints(run_dir) if checkpoint_step(p) >= from_step]
     steps = [checkpoint_step(p) for p in paths]
@@ -66,7 +71,7 @@ def evaluate_run(run_dir: Path, every: int, heldout: int, train_episodes: int, n
                 ("train", dataclasses.replace(cfg.env, num_envs=num_envs), train_episodes)):
             if episodes:
                 policy = policy_from_checkpoint(ckpt, cfg, env_cfg)
-                row[name] = play(env_cfg, policy, episodes).summary()
+                row[name] = play(env_cfg, policy, episodes, deterministic=deterministic).summary()
         print(json.dumps(row), flush=True)
         curve.append(row)
     return curve
@@ -112,6 +117,7 @@ def main() -> None:
     parser.add_argument("--baselines", nargs="*", default=["metadrive-expert", "random"])
     parser.add_argument("--num-envs", type=int, default=2, help="evaluation env processes")
     parser.add_argument("--from-step", type=int, default=0, help="skip checkpoints before this step (1: the initial one)")
+    parser.add_argument("--stochastic", action="store_true", help="sample every policy's actions (see above)")
     parser.add_argument("--out", help="JSON path (the PNG goes beside it); default RUN/generalization.json")
     args = parser.parse_args()
     run_dir = Path(args.run_dir)
@@ -123,23 +129,28 @@ def main() -> None:
     started = time.perf_counter()
     # A second call on the same output adds the new checkpoints (and baselines) only.
     previous = json.loads(out.read_text()) if out.exists() else {}
-    if (previous.get("heldout_episodes"), previous.get("train_episodes")) != (args.heldout, args.train_episodes):
+    actions = "sampled" if args.stochastic else "mode"
+    if (previous.get("heldout_episodes"), previous.get("train_episodes"), previous.get("actions", "mode")) != (
+            args.heldout, args.train_episodes, actions):
         previous = {}
     known = {row["step"]: row for row in previous.get("curve", [])}
-    curve = evaluate_run(run_dir, args.every, args.heldout, args.train_episodes, args.num_envs, args.from_step, known)
+    curve = evaluate_run(run_dir, args.every, args.heldout, args.train_episodes, args.num_envs, args.from_step, known,
+                         deterministic=not args.stochastic)
     heldout_env = EnvConfig(id=HELDOUT_ENV, num_envs=args.num_envs)
-    baselines = {name: previous.get("baselines", {}).get(name) or evaluate_baseline(name, heldout_env, args.heldout).summary()
+    baselines = {name: previous.get("baselines", {}).get(name)
+                 or evaluate_baseline(name, heldout_env, args.heldout, deterministic=not args.stochastic).summary()
                  for name in args.baselines}
     metrics = [row for row in curve if "heldout" in row]
     best = max(metrics, key=lambda row: (row["heldout"]["success_rate"], row["heldout"]["route_completion"]), default=None)
     cfg = read_yaml(run_dir / "config.yaml")
     result = {"benchmark": "metadrive-generalization", "run_dir": str(run_dir), "algo": cfg["algo"],
               "train_env": cfg["env"]["id"], "heldout_env": HELDOUT_ENV, "heldout_episodes": args.heldout,
-              "train_episodes": args.train_episodes, "train_wall_s_this_call": wall,
+              "train_episodes": args.train_episodes, "actions": actions, "train_wall_s_this_call": wall,
               "eval_wall_s": time.perf_counter() - started, "curve": curve, "baselines": baselines, "best": best}
     out.write_text(json.dumps(result, indent=1) + "\n")
     plot(curve, baselines, out.with_suffix(".png"),
-         f"{cfg['algo']} trained on {cfg['env']['id']}: {args.heldout} held-out validation scenarios")
+         f"{cfg['algo']} trained on {cfg['env']['id']}: {args.heldout} held-out validation scenarios"
+         + (", sampled actions" if args.stochastic else ""))
     print(json.dumps({"best": best, "baselines": baselines}, indent=1))
     print(f"wrote {out} and {out.with_suffix('.png')}")
 

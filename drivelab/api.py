@@ -212,25 +212,30 @@ def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None
 
 
 def evaluate_baseline(name: str, env_cfg: EnvConfig, episodes: int = 10, seed: int = 0,
-                      recorder: Recorder | None = None) -> EvalResult:
+                      recorder: Recorder | None = None, deterministic: bool = True) -> EvalResult:
     """Evaluate a reference policy (``random``, ``lane-keeping``, ``metadrive-expert``; see
     :mod:`drivelab.baselines`) with the protocol of :func:`evaluate_checkpoint`: same env config,
-    episode k reset with seed ``seed + k``, same metrics."""
+    episode k reset with seed ``seed + k``, same metrics; ``deterministic=False`` samples the
+    expert's actions, as it samples a checkpoint's."""
     if episodes < 1:
         raise DrivelabError(f"--episodes must be >= 1, got {episodes}")
     env_cfg = dataclasses.replace(env_cfg, num_envs=1 if recorder else max(1, min(env_cfg.num_envs, episodes)))
-    wrapper, policy = baseline(name, env_spaces(env_cfg)[1], seed)
+    wrapper, policy = baseline(name, env_spaces(env_cfg)[1], seed, deterministic)
     return play(env_cfg, policy, episodes, seed, wrapper=wrapper, recorder=recorder)
 
 
 def play(env_cfg: EnvConfig, policy, episodes: int, seed: int = 0, deterministic: bool = True,
          wrapper=None, recorder: Recorder | None = None) -> EvalResult:
     """``episodes`` episodes of ``policy`` on a vector env built from ``env_cfg`` (then closed);
-    with a ``recorder``, the envs render ``rgb_array`` frames for it."""
+    with a ``recorder``, the envs render ``rgb_array`` frames for it. Sampled actions
+    (``deterministic=False``) come from torch's generator seeded with ``seed``, forked so that the
+    caller's generator is left as it was: the same seed gives the same episodes."""
     envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, wrapper=wrapper,
                            render_mode="rgb_array" if recorder is not None else None)
     try:
-        return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic, recorder=recorder)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic, recorder=recorder)
     finally:
         envs.close()
 

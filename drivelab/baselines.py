@@ -18,7 +18,9 @@ same env (drivelab's MetaDrive adapter, e.g. ``MetaDrive-validation-v0``), with 
   vehicles as 4 x 4 values, 240 lidar rays to 50 m), so it needs the live MetaDrive vehicle and
   engine. To observe, it briefly switches the vehicle's sensor config to its own (lidar with
   ``num_others=4``) and back. It needs no 3D assets and downloads nothing. A strong reference:
-  a trained agent that gets near it has learned to drive.
+  a trained agent that gets near it has learned to drive. With ``deterministic=False`` (``drivelab
+  eval --stochastic``) it samples from its Gaussian instead, so that a trained policy whose actions
+  are sampled is compared with a sampled expert.
 
 Measured on ``MetaDrive-validation-v0`` (horizon 1000, MetaDrive's default traffic density 0.1),
 deterministic, one episode per scenario (crash and out of road can both happen in one episode):
@@ -54,7 +56,8 @@ from __future__ import annotations
 
 import copy
 import difflib
-from typing import Any
+import functools
+from typing import Any, Callable
 
 import gymnasium as gym
 import numpy as np
@@ -82,8 +85,9 @@ def _action_box(space: gym.spaces.Box) -> gym.spaces.Box:
 class ExpertActionObservation(gym.Wrapper):
     """Replaces the observation by MetaDrive's PPO expert action for the current state.
 
-    After ``reset`` and after every ``step`` the expert (``metadrive.examples.ppo_expert``, its
-    deterministic action) is asked what to do in the ego vehicle's current state; that action,
+    After ``reset`` and after every ``step`` the expert (``metadrive.examples.ppo_expert``: the
+    mean of its Gaussian, or with ``deterministic=False`` a sample of it) is asked what to do in
+    the ego vehicle's current state; that action,
     clipped to the action bounds, is returned as the observation. Observation: float32 (2,)
     [steering, throttle], the observation space is the env's action Box. Actions, rewards and
     ``info`` pass through unchanged.
@@ -91,12 +95,16 @@ class ExpertActionObservation(gym.Wrapper):
     ``env`` must be drivelab's MetaDrive adapter (:class:`drivelab.envs.metadrive.MetaDriveGym`,
     possibly under other wrappers) with a Box(2,) [steering, throttle] action space. Building the
     wrapper starts no engine; the expert is imported and run only from ``reset`` on.
+
+    MetaDrive's expert samples with numpy's global generator; this wrapper seeds it in ``reset``
+    with the episode's seed (in the env's own process), so sampled episodes repeat too.
     """
 
-    def __init__(self, env: gym.Env):
+    def __init__(self, env: gym.Env, deterministic: bool = True):
         from drivelab.envs.metadrive import MetaDriveGym
 
         super().__init__(env)
+        self.deterministic = deterministic
         if not isinstance(env.unwrapped, MetaDriveGym):
             raise DrivelabError(f"the metadrive-expert baseline needs a MetaDrive env, got {_env_name(env)}")
         _check_steering_throttle(env.action_space, "metadrive-expert")
@@ -109,11 +117,13 @@ class ExpertActionObservation(gym.Wrapper):
         from metadrive.examples.ppo_expert.numpy_expert import expert
 
         vehicle = self.env.unwrapped.metadrive.agent
-        action = expert(vehicle, deterministic=True)  # (2,) mean of the expert's Gaussian
+        action = expert(vehicle, deterministic=self.deterministic)  # (2,) mean of the expert's Gaussian, or a sample
         return np.clip(action, self.observation_space.low, self.observation_space.high).astype(np.float32)
 
     def reset(self, **kwargs: Any):
         _, info = self.env.reset(**kwargs)
+        if not self.deterministic and kwargs.get("seed") is not None:
+            np.random.seed(kwargs["seed"])
         return self._expert_action(), info
 
     def step(self, action):
@@ -199,17 +209,19 @@ class RandomPolicy:
         return array
 
 
-def baseline(name: str, action_space: gym.Space,
-             seed: int = 0) -> tuple[type[gym.Wrapper] | None, ObservationIsAction | RandomPolicy]:
+def baseline(name: str, action_space: gym.Space, seed: int = 0,
+             deterministic: bool = True) -> tuple[Callable[[gym.Env], gym.Wrapper] | None, ObservationIsAction | RandomPolicy]:
     """A reference policy by name (one of :data:`BASELINES`).
 
     Args:
         name: ``"random"``, ``"lane-keeping"`` or ``"metadrive-expert"``.
         action_space: the action space of one env (``drivelab.envs.env_spaces``).
-        seed: seed of the random policy's generator (the other two are deterministic).
+        seed: seed of the random policy's generator.
+        deterministic: False samples the expert's actions (the random policy always samples,
+            the lane keeper never does).
 
     Returns:
-        ``(wrapper, policy)``: the wrapper class to apply to each env (inside its process), or
+        ``(wrapper, policy)``: the wrapper (a class, or a partial of one) to apply to each env (inside its process), or
         None when the env needs none; and the policy, an object with ``act(obs, deterministic)``
         and ``to_env(action)`` like a trained policy.
     """
@@ -220,7 +232,7 @@ def baseline(name: str, action_space: gym.Space,
         return LaneKeepingObservation, ObservationIsAction(action_space)
     if name == "metadrive-expert":
         _check_steering_throttle(action_space, name)
-        return ExpertActionObservation, ObservationIsAction(action_space)
+        return functools.partial(ExpertActionObservation, deterministic=deterministic), ObservationIsAction(action_space)
     close = difflib.get_close_matches(name, BASELINES, n=1)
     hint = f" (did you mean {close[0]}?)" if close else ""
     raise DrivelabError(f"unknown baseline '{name}'{hint}; choose from {', '.join(BASELINES)}")

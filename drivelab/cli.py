@@ -103,7 +103,8 @@ def _eval_parser(sub) -> None:
     p.add_argument("--env-kwarg", action="append", default=[], metavar="KEY=VALUE", help="env keyword override (repeatable)")
     p.add_argument("--num-envs", type=int, help="parallel environments (default: as in training)")
     p.add_argument("--seed", type=int, default=0, help="episode k is reset with seed SEED+k")
-    p.add_argument("--stochastic", action="store_true", help="sample actions instead of taking the mode")
+    p.add_argument("--stochastic", action="store_true",
+                   help="sample actions instead of taking the mode (checkpoints and the expert)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--video", metavar="FILE", help="record the episodes into one video (.mp4, or .gif); plays on one env")
     p.add_argument("--video-dir", metavar="DIR", help="record one video per episode into DIR (episode_<k>.mp4)")
@@ -263,7 +264,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         base.num_envs = args.num_envs or 2
         base.validate()
         for name in args.policy:
-            rows.append({**api.evaluate_baseline(name, base, args.episodes, args.seed, _recorder(args)).summary(),
+            rows.append({**api.evaluate_baseline(name, base, args.episodes, args.seed, _recorder(args),
+                                                 deterministic=not args.stochastic).summary(),
                          "env": base.id, "policy": name})
     nonfinite = [f"{k}={v}" for row in rows for k, v in row.items() if isinstance(v, float) and not math.isfinite(v)]
     if args.json:  # always valid JSON: a non-finite number is null
@@ -274,7 +276,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         what = f"{row['checkpoint']} (step {row['step']})" if "checkpoint" in row else f"the {row['policy']} baseline"
         print(format_eval(row, row["env"], what))
     else:
-        print(format_table(rows, args.episodes, args.seed))
+        print(format_table(rows, args.episodes, args.seed, sampled=args.stochastic))
     if nonfinite:
         raise DrivelabError(f"evaluation gave non-finite results ({', '.join(nonfinite[:3])}): the policy or env diverged")
     return 0
@@ -302,7 +304,7 @@ def _recorder(args: argparse.Namespace):
     return None
 
 
-def format_table(rows: list[dict[str, Any]], episodes: int, seed: int) -> str:
+def format_table(rows: list[dict[str, Any]], episodes: int, seed: int, sampled: bool = False) -> str:
     """One line per evaluated policy: return and the driving metrics the env reports."""
     columns = [(key, label) for key, label in (("success_rate", "success"), ("crash_rate", "crash"),
                                                ("out_of_road_rate", "off road"), ("route_completion", "route"))
@@ -310,7 +312,8 @@ def format_table(rows: list[dict[str, Any]], episodes: int, seed: int) -> str:
     names = [row.get("policy") or f"{row['checkpoint']} (step {row['step']})" for row in rows]
     width = max(len(n) for n in names) + 2
     envs = sorted({row["env"] for row in rows})
-    lines = [f"{episodes} episodes each on {', '.join(envs)} (episode k: seed {seed}+k), deterministic",
+    lines = [f"{episodes} episodes each on {', '.join(envs)} (episode k: seed {seed}+k), "
+             f"{'sampled actions' if sampled else 'deterministic'}",
              f"{'policy':<{width}}{'return':>18}" + "".join(f"{label:>10}" for _, label in columns)]
     for name, row in zip(names, rows):
         ret = f"{row['return_mean']:.1f} ± {row['return_std']:.1f}"

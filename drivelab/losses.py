@@ -61,3 +61,18 @@ def explained_variance(predicted: torch.Tensor, target: torch.Tensor) -> torch.T
     """1 - Var[target - predicted] / Var[target]: 1 is perfect, 0 no better than a constant."""
     var = target.var()
     return 1 - (target - predicted).var() / var if var > 0 else torch.tensor(float("nan"))
+
+
+def deterministic_actor_loss(q: torch.Tensor, pre_tanh: torch.Tensor, pre_tanh_l2: float = 0.0) -> torch.Tensor:
+    """-E[Q(s, mu(s))] + pre_tanh_l2 * E[u(s)^2], with mu(s) = tanh(u(s)): q (B,), pre_tanh (B, A).
+
+    The deterministic policy gradient (Silver et al. 2014) reaches u through tanh'(u) = 1 - mu^2,
+    which vanishes as mu saturates at +-1: an actor pushed to a bound stays there whatever the
+    critic later learns (TD3 on MetaDrive braked at throttle -0.99999 in every state). The penalty
+    on u, whose gradient does not vanish there, keeps the actor off the bounds; like the action
+    penalty of Andrychowicz et al. 2017 (HER), but on u, so it also pulls a saturated actor back.
+    """
+    loss = -q.mean()
+    if pre_tanh_l2:
+        loss = loss + pre_tanh_l2 * pre_tanh.pow(2).mean()
+    return loss

@@ -311,11 +311,15 @@ class Critics(nn.Module):
 
 
 class DeterministicActor(nn.Module):
-    """mu(s) in [-1, 1]^A (DDPG, TD3)."""
+    """mu(s) = tanh(u(s)) in [-1, 1]^A (DDPG, TD3)."""
 
     def __init__(self, feature_dim: int, act_dim: int, hidden: Sequence[int], act: str):
         super().__init__()
         self.net = nn.Sequential(mlp(feature_dim, hidden, act), nn.Linear(hidden[-1], act_dim), nn.Tanh())
+
+    def pre_tanh(self, features: torch.Tensor) -> torch.Tensor:
+        """u(s), (B, A): the output before the tanh (for a penalty that keeps it unsaturated)."""
+        return self.net[:-1](features)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         return self.net(features)

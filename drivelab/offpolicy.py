@@ -54,9 +54,12 @@ class NoisyExplorationParams(OffPolicyParams):
     noise_std: float = 0.1            # noise std at the start ...
     noise_std_final: float = 0.1      # ... and after noise_decay_steps
     noise_decay_steps: int = 0
+    pre_tanh_l2: float = 0.0          # actor loss + this * mean(u(s)^2), u the actor's pre-tanh output
 
     def validate(self) -> None:
         super().validate()
+        if self.pre_tanh_l2 < 0:
+            raise DrivelabError(f"config field 'pre_tanh_l2' must be >= 0, got {self.pre_tanh_l2}")
         if self.noise not in ("gaussian", "ou"):
             raise DrivelabError(f"config field 'noise' must be gaussian or ou, got {self.noise!r}")
 

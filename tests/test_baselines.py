@@ -23,6 +23,10 @@ def expert_env() -> gym.Env:
     return ExpertActionObservation(gym.make("MetaDrive-validation-v0", horizon=HORIZON))
 
 
+def sampled_expert_env() -> gym.Env:
+    return ExpertActionObservation(gym.make("MetaDrive-validation-v0", horizon=HORIZON), deterministic=False)
+
+
 def lane_keeping_env() -> gym.Env:
     return LaneKeepingObservation(gym.make("MetaDrive-validation-v0", horizon=HORIZON, traffic_density=0.0))
 
@@ -59,7 +63,7 @@ def test_metadrive_expert_drives_offline_in_spawned_subprocesses(monkeypatch):
         monkeypatch.setenv(var, "http://127.0.0.1:9")
     before = _metadrive_files()
     wrapper, policy = baseline("metadrive-expert", gym.spaces.Box(-1.0, 1.0, (2,), np.float32))
-    assert wrapper is ExpertActionObservation
+    assert wrapper.func is ExpertActionObservation and wrapper.keywords == {"deterministic": True}
     last, actions = _play(expert_env, policy, seeds=[0, 1])
     assert actions.shape[1] == 2 and actions.dtype == np.float32
     assert np.all(actions >= -1.0) and np.all(actions <= 1.0)
@@ -67,6 +71,17 @@ def test_metadrive_expert_drives_offline_in_spawned_subprocesses(monkeypatch):
     for info in last:
         assert info["route_completion"] > 0.05            # and the car moves along its route
     assert _metadrive_files() == before                   # nothing downloaded into site-packages
+
+
+def test_sampled_expert_repeats_with_its_seed_and_differs_from_the_mean():
+    sampled, _ = baseline("metadrive-expert", gym.spaces.Box(-1.0, 1.0, (2,), np.float32), deterministic=False)
+    assert sampled.keywords == {"deterministic": False}
+    policy = ObservationIsAction(gym.spaces.Box(-1.0, 1.0, (2,), np.float32))
+    _, twins = _play(sampled_expert_env, policy, seeds=[3, 3])     # rows alternate env 0, env 1
+    _, mean = _play(expert_env, policy, seeds=[3])
+    n = min(20, len(mean))
+    np.testing.assert_array_equal(twins[0:2 * n:2], twins[1:2 * n:2])  # same seed, same samples
+    assert np.abs(twins[0:2 * n:2] - mean[:n]).max() > 0.05           # but not the mean action
 
 
 def test_lane_keeping_follows_the_lane_in_a_subprocess():
@@ -146,3 +161,12 @@ def test_cli_evaluates_the_expert_with_the_checkpoint_protocol(run_cli):
     assert result["route_completion"] > 0.05 and result["return_mean"] > 0
     missing = run_cli("eval", "no/such/run", "--policy", "random")
     assert missing.returncode == 2 and "no/such/run" in missing.stderr and "Traceback" not in missing.stderr
+
+
+def test_eval_table_says_whether_actions_were_sampled():
+    from drivelab.cli import format_table
+
+    row = {"policy": "metadrive-expert", "env": "MetaDrive-validation-v0", "return_mean": 1.0, "return_std": 0.0,
+           "success_rate": 0.5}
+    assert format_table([row, row], 2, 0).splitlines()[0].endswith(", deterministic")
+    assert format_table([row, row], 2, 0, sampled=True).splitlines()[0].endswith(", sampled actions")

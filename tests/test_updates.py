@@ -218,6 +218,30 @@ def test_td3_update_smooths_the_target_action_and_delays_the_actor():
     _assert_params(target, _polyak(target_before, agent, 0.1))
 
 
+def test_td3_pre_tanh_penalty_by_hand_and_on_a_saturated_actor():
+    from drivelab.losses import deterministic_actor_loss
+
+    # The actor step with the penalty, by hand: -Q_1(s, tanh(u)) + lambda * mean(u^2), after the critic's step.
+    agent, target = _agent_and_target(stochastic=False, critics=2)
+    batch, hp = _replay_batch(), td3.Params(gamma=0.9, tau=0.1, pre_tanh_l2=0.5)
+    opt = td3.Optimizers(**_sgd(agent, lrs=(0.0, 0.02)))   # a frozen critic: the actor's step alone
+    u_of = lambda actor: actor.net[:-1](batch.obs)          # noqa: E731
+    expected, ref = _expected_after_sgd(
+        agent.actor, lambda a: -agent.critic(batch.obs, torch.tanh(u_of(a)))[0].mean() + 0.5 * u_of(a).pow(2).mean(),
+        lr=0.02)
+    out = td3.update(agent, target, opt, batch, hp, update_actor=True)
+    assert out["loss/actor"].item() == pytest.approx(ref.item(), rel=1e-5)
+    _assert_params(agent.actor, expected)
+    # Without the penalty it is exactly -E[Q]; at a saturated output only the penalty still has a gradient.
+    u = torch.full((4, 2), -8.0, requires_grad=True)
+    q = torch.tanh(u).sum(-1)                              # a critic that prefers larger actions
+    assert torch.equal(deterministic_actor_loss(q, u), -q.mean())
+    (grad_plain,) = torch.autograd.grad(deterministic_actor_loss(q, u), u, retain_graph=True)
+    (grad_penalised,) = torch.autograd.grad(deterministic_actor_loss(q, u, 0.01), u)
+    assert grad_plain.abs().max() < 1e-6                   # tanh'(-8) ~ 5e-7: stuck at the bound
+    assert torch.all(grad_penalised < -1e-3)               # descent raises u, back towards 0
+
+
 def test_sac_update_soft_target_actor_and_temperature():
     agent, target = _agent_and_target(stochastic=True, critics=2)
     batch, hp = _replay_batch(), sac.Params(gamma=0.9, tau=0.1, init_alpha=0.2)

@@ -17,6 +17,7 @@ import torch
 
 from drivelab.buffers import ReplayBatch
 from drivelab.config import TrainConfig
+from drivelab.losses import deterministic_actor_loss
 from drivelab.nets import OffPolicyAgent, make_target, polyak_update
 from drivelab.offpolicy import NoisyExploration, NoisyExplorationParams, ReplayCollector, make_optimizers
 from drivelab.optim import gradient_step
@@ -60,10 +61,12 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch
     loss_q = (q - y).pow(2).mean()
     gradient_step(opt.critic, loss_q)
     detached = features.detach()
-    loss_pi = -agent.critic(detached, agent.actor(detached)).mean()
+    pre_tanh = agent.actor.pre_tanh(detached)
+    loss_pi = deterministic_actor_loss(agent.critic(detached, torch.tanh(pre_tanh))[0], pre_tanh, hp.pre_tanh_l2)
     gradient_step(opt.actor, loss_pi)
     polyak_update(target, agent, hp.tau)
-    return {"loss/critic": loss_q.detach(), "loss/actor": loss_pi.detach(), "charts/q": q.mean().detach()}
+    return {"loss/critic": loss_q.detach(), "loss/actor": loss_pi.detach(), "charts/q": q.mean().detach(),
+            "charts/actor_saturation": (pre_tanh.detach().abs() > 3.0).float().mean()}
 
 
 def train(cfg: TrainConfig, run: Run) -> None:

@@ -23,6 +23,7 @@ import torch
 from drivelab.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
+from drivelab.losses import deterministic_actor_loss
 from drivelab.nets import OffPolicyAgent, make_target, polyak_update
 from drivelab.offpolicy import NoisyExploration, NoisyExplorationParams, ReplayCollector, make_optimizers
 from drivelab.optim import gradient_step
@@ -78,10 +79,13 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch
     logged = {"loss/critic": loss_q.detach(), "charts/q": q.mean().detach()}
     if update_actor:
         detached = features.detach()
-        loss_pi = -agent.critic(detached, agent.actor(detached))[0].mean()  # ascend Q_1 (the paper's choice)
+        pre_tanh = agent.actor.pre_tanh(detached)
+        q_pi = agent.critic(detached, torch.tanh(pre_tanh))[0]       # ascend Q_1 (the paper's choice)
+        loss_pi = deterministic_actor_loss(q_pi, pre_tanh, hp.pre_tanh_l2)
         gradient_step(opt.actor, loss_pi)
         polyak_update(target, agent, hp.tau)
         logged["loss/actor"] = loss_pi.detach()
+        logged["charts/actor_saturation"] = (pre_tanh.detach().abs() > 3.0).float().mean()  # share of |mu| > 0.995
     return logged
 
 
