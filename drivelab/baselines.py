@@ -87,8 +87,8 @@ class ExpertActionObservation(gym.Wrapper):
 
     After ``reset`` and after every ``step`` the expert (``metadrive.examples.ppo_expert``: the
     mean of its Gaussian, or with ``deterministic=False`` a sample of it) is asked what to do in
-    the ego vehicle's current state; that action,
-    clipped to the action bounds, is returned as the observation. Observation: float32 (2,)
+    the ego vehicle's current state; that action, clipped to the action bounds, is returned as
+    the observation. Observation: float32 (2,)
     [steering, throttle], the observation space is the env's action Box. Actions, rewards and
     ``info`` pass through unchanged.
 
@@ -117,7 +117,7 @@ class ExpertActionObservation(gym.Wrapper):
         from metadrive.examples.ppo_expert.numpy_expert import expert
 
         vehicle = self.env.unwrapped.metadrive.agent
-        action = expert(vehicle, deterministic=self.deterministic)  # (2,) mean of the expert's Gaussian, or a sample
+        action = expert(vehicle, deterministic=self.deterministic)  # (2,) the Gaussian's mean, or a sample
         return np.clip(action, self.observation_space.low, self.observation_space.high).astype(np.float32)
 
     def reset(self, **kwargs: Any):
@@ -209,8 +209,8 @@ class RandomPolicy:
         return array
 
 
-def baseline(name: str, action_space: gym.Space, seed: int = 0,
-             deterministic: bool = True) -> tuple[Callable[[gym.Env], gym.Wrapper] | None, ObservationIsAction | RandomPolicy]:
+def baseline(name: str, action_space: gym.Space, seed: int = 0, deterministic: bool = True
+             ) -> tuple[Callable[[gym.Env], gym.Wrapper] | None, ObservationIsAction | RandomPolicy]:
     """A reference policy by name (one of :data:`BASELINES`).
 
     Args:
@@ -221,8 +221,8 @@ def baseline(name: str, action_space: gym.Space, seed: int = 0,
             the lane keeper never does).
 
     Returns:
-        ``(wrapper, policy)``: the wrapper (a class, or a partial of one) to apply to each env (inside its process), or
-        None when the env needs none; and the policy, an object with ``act(obs, deterministic)``
+        ``(wrapper, policy)``: the wrapper (a class, or a partial of one) to apply to each env
+        (inside its process), or None when the env needs none; and the policy, an object with ``act(obs, deterministic)``
         and ``to_env(action)`` like a trained policy.
     """
     if name == "random":
@@ -232,7 +232,8 @@ def baseline(name: str, action_space: gym.Space, seed: int = 0,
         return LaneKeepingObservation, ObservationIsAction(action_space)
     if name == "metadrive-expert":
         _check_steering_throttle(action_space, name)
-        return functools.partial(ExpertActionObservation, deterministic=deterministic), ObservationIsAction(action_space)
+        wrapper = functools.partial(ExpertActionObservation, deterministic=deterministic)
+        return wrapper, ObservationIsAction(action_space)
     close = difflib.get_close_matches(name, BASELINES, n=1)
     hint = f" (did you mean {close[0]}?)" if close else ""
     raise DrivelabError(f"unknown baseline '{name}'{hint}; choose from {', '.join(BASELINES)}")

@@ -76,3 +76,9 @@ def deterministic_actor_loss(q: torch.Tensor, pre_tanh: torch.Tensor, pre_tanh_l
     if pre_tanh_l2:
         loss = loss + pre_tanh_l2 * pre_tanh.pow(2).mean()
     return loss
+
+
+def saturated_share(pre_tanh: torch.Tensor) -> torch.Tensor:
+    """Share of the actor's outputs at a bound, |tanh(u)| > 0.995 (|u| > 3): (B, A) -> scalar.
+    Logged as ``charts/actor_saturation``; near 1, the actor has stopped learning."""
+    return (pre_tanh.detach().abs() > 3.0).float().mean()

@@ -68,8 +68,8 @@ def test_evaluation_is_deterministic_and_reports_json_keys(tmp_path):
     assert first.returns.tolist() == second.returns.tolist(), "episode k's seed does not depend on num_envs"
     assert set(first.summary()) >= {"return_mean", "return_std", "episodes"} and first.summary()["episodes"] == 5
     # Sampled actions repeat with the seed too.
-    sampled = [evaluate_checkpoint(tmp_path / "r", episodes=5, num_envs=2, seed=s, deterministic=False)[0].returns.tolist()
-               for s in (0, 0, 1)]
+    sampled = [evaluate_checkpoint(tmp_path / "r", episodes=5, num_envs=2, seed=s, deterministic=False)[0]
+               .returns.tolist() for s in (0, 0, 1)]
     assert sampled[0] == sampled[1] != sampled[2]
 
 

@@ -17,7 +17,7 @@ import torch
 
 from drivelab.buffers import ReplayBatch
 from drivelab.config import TrainConfig
-from drivelab.losses import deterministic_actor_loss
+from drivelab.losses import deterministic_actor_loss, saturated_share
 from drivelab.nets import OffPolicyAgent, make_target, polyak_update
 from drivelab.offpolicy import NoisyExploration, NoisyExplorationParams, ReplayCollector, make_optimizers
 from drivelab.optim import gradient_step
@@ -66,7 +66,7 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch
     gradient_step(opt.actor, loss_pi)
     polyak_update(target, agent, hp.tau)
     return {"loss/critic": loss_q.detach(), "loss/actor": loss_pi.detach(), "charts/q": q.mean().detach(),
-            "charts/actor_saturation": (pre_tanh.detach().abs() > 3.0).float().mean()}
+            "charts/actor_saturation": saturated_share(pre_tanh)}
 
 
 def train(cfg: TrainConfig, run: Run) -> None:

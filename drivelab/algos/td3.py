@@ -23,7 +23,7 @@ import torch
 from drivelab.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
-from drivelab.losses import deterministic_actor_loss
+from drivelab.losses import deterministic_actor_loss, saturated_share
 from drivelab.nets import OffPolicyAgent, make_target, polyak_update
 from drivelab.offpolicy import NoisyExploration, NoisyExplorationParams, ReplayCollector, make_optimizers
 from drivelab.optim import gradient_step
@@ -85,7 +85,7 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch
         gradient_step(opt.actor, loss_pi)
         polyak_update(target, agent, hp.tau)
         logged["loss/actor"] = loss_pi.detach()
-        logged["charts/actor_saturation"] = (pre_tanh.detach().abs() > 3.0).float().mean()  # share of |mu| > 0.995
+        logged["charts/actor_saturation"] = saturated_share(pre_tanh)
     return logged
 
 
