@@ -292,14 +292,23 @@ class EnsembleLinear(nn.Module):
 
 
 class Critics(nn.Module):
-    """E Q-networks Q_e(s, a) over features of s: forward returns (E, B)."""
+    """E Q-networks Q_e(s, a) over features of s: forward returns (E, B).
 
-    def __init__(self, feature_dim: int, act_dim: int, hidden: Sequence[int], act: str, ensemble: int = 2):
+    ``layer_norm`` normalises each hidden layer before its activation (Ball et al. 2023, "RLPD":
+    it bounds how far Q can extrapolate to actions the buffer never saw). The norm has no learned
+    gain or bias, so the E critics still share no parameters.
+    """
+
+    def __init__(self, feature_dim: int, act_dim: int, hidden: Sequence[int], act: str, ensemble: int = 2,
+                 layer_norm: bool = False):
         super().__init__()
         layers: list[nn.Module] = []
         width = feature_dim + act_dim
         for h in hidden:
-            layers += [EnsembleLinear(ensemble, width, h), activation(act)()]
+            layers.append(EnsembleLinear(ensemble, width, h))
+            if layer_norm:
+                layers.append(nn.LayerNorm(h, elementwise_affine=False))
+            layers.append(activation(act)())
             width = h
         layers.append(EnsembleLinear(ensemble, width, 1))
         self.net = nn.Sequential(*layers)
@@ -371,7 +380,7 @@ class OffPolicyAgent(nn.Module):
     """
 
     def __init__(self, obs_space: gym.Space, act_space: gym.Space, hidden: Sequence[int], act: str,
-                 stochastic: bool, critics: int = 2):
+                 stochastic: bool, critics: int = 2, critic_layer_norm: bool = False):
         super().__init__()
         if not (isinstance(act_space, gym.spaces.Box) and len(act_space.shape) == 1):
             raise DrivelabError(f"DDPG, TD3 and SAC need a continuous 1-D Box action space, not {act_space} "
@@ -385,7 +394,7 @@ class OffPolicyAgent(nn.Module):
         act_dim = act_space.shape[0]
         actor_cls = SquashedGaussianActor if stochastic else DeterministicActor
         self.actor = actor_cls(feature_dim, act_dim, hidden, act)
-        self.critic = Critics(feature_dim, act_dim, hidden, act, ensemble=critics)
+        self.critic = Critics(feature_dim, act_dim, hidden, act, ensemble=critics, layer_norm=critic_layer_norm)
         self.stochastic = stochastic
         # [-1, 1] -> [low, high]
         low, high = (torch.tensor(b, dtype=torch.float32) for b in (act_space.low, act_space.high))

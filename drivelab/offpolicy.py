@@ -38,6 +38,7 @@ class OffPolicyParams:
     critic_lr: float = 3e-4           # critic (and image encoder) learning rate (Adam)
     hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer widths
     activation: str = "relu"          # tanh | relu | elu | silu
+    critic_layer_norm: bool = False   # LayerNorm in the critics' hidden layers (nets.Critics)
     compile: bool = False             # torch.compile the critic and actor forward passes
 
     def validate(self) -> None:

@@ -66,6 +66,22 @@ def test_ensemble_linear_equals_separate_layers():
         torch.testing.assert_close(out[e], x @ layer.weight[e] + layer.bias[e, 0])
 
 
+def test_critic_layer_norm_normalises_each_critics_hidden_layers(tmp_path):
+    agent = OffPolicyAgent(gym.spaces.Box(-1, 1, (3,)), gym.spaces.Box(-1, 1, (2,)), [16, 16], "relu",
+                           stochastic=False, critics=2, critic_layer_norm=True)
+    x = 10 * torch.randn(7, 5)                       # features and actions, far from unit scale
+    hidden = agent.critic.net[:2](x.expand(2, 7, 5))  # first linear layer of both critics, then the norm
+    torch.testing.assert_close(hidden.mean(-1), torch.zeros(2, 7), atol=1e-5, rtol=0)
+    torch.testing.assert_close(hidden.var(-1, unbiased=False), torch.ones(2, 7), atol=1e-3, rtol=0)
+    assert not list(agent.critic.net[1].parameters())  # no shared gain: the twins stay independent
+    # the config field reaches the critics of a trained run, and its checkpoint loads for evaluation
+    train(_pendulum(tmp_path / "ln", "td3", 300, critic_layer_norm=True), progress=False)
+    result, _, _ = evaluate_checkpoint(tmp_path / "ln", episodes=1)
+    assert math.isfinite(result.summary()["return_mean"])
+    tensors = load_file(str(list_checkpoints(tmp_path / "ln")[-1] / "tensors.safetensors"))
+    assert "module/policy/critic.net.3.weight" in tensors        # Linear, LayerNorm, ReLU, Linear...
+
+
 def test_discrete_actions_are_refused_clearly():
     with pytest.raises(DrivelabError, match="continuous"):
         OffPolicyAgent(gym.spaces.Box(-1, 1, (3,)), gym.spaces.Discrete(9), [8], "relu", stochastic=True)

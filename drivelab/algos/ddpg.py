@@ -41,7 +41,8 @@ class Optimizers(NamedTuple):
 
 def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> OffPolicyAgent:
     hp = cfg.algo_params
-    return OffPolicyAgent(obs_space, act_space, hp.hidden, hp.activation, stochastic=False, critics=1)
+    return OffPolicyAgent(obs_space, act_space, hp.hidden, hp.activation, stochastic=False, critics=1,
+                          critic_layer_norm=hp.critic_layer_norm)
 
 
 def ddpg_target(rewards: torch.Tensor, terminated: torch.Tensor, next_q: torch.Tensor, gamma: float) -> torch.Tensor:

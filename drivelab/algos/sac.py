@@ -53,7 +53,8 @@ class Optimizers(NamedTuple):
 
 def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> OffPolicyAgent:
     hp = cfg.algo_params
-    return OffPolicyAgent(obs_space, act_space, hp.hidden, hp.activation, stochastic=True, critics=2)
+    return OffPolicyAgent(obs_space, act_space, hp.hidden, hp.activation, stochastic=True, critics=2,
+                          critic_layer_norm=hp.critic_layer_norm)
 
 
 def critic_loss(q: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -49,7 +49,8 @@ class Optimizers(NamedTuple):
 
 def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> OffPolicyAgent:
     hp = cfg.algo_params
-    return OffPolicyAgent(obs_space, act_space, hp.hidden, hp.activation, stochastic=False, critics=2)
+    return OffPolicyAgent(obs_space, act_space, hp.hidden, hp.activation, stochastic=False, critics=2,
+                          critic_layer_norm=hp.critic_layer_norm)
 
 
 def td_target(rewards: torch.Tensor, terminated: torch.Tensor, next_q: torch.Tensor, gamma: float) -> torch.Tensor:
