@@ -1,9 +1,12 @@
+from pathlib import Path
+
 import pytest
 
 from drivelab.cli import parse_overrides, parse_value
 from drivelab.api import build_config
 from drivelab.config import TrainConfig, config_to_dict, read_yaml, save_config
 from drivelab.errors import DrivelabError
+from drivelab.sweep import plan, trial_config
 
 
 def test_defaults_and_algo_section():
@@ -61,3 +64,20 @@ def test_cli_overrides_are_typed():
     assert parse_value("true") is True
     with pytest.raises(DrivelabError, match="needs a value"):
         parse_overrides(["--reinforce.lr"])
+
+
+SHIPPED = sorted((Path(__file__).resolve().parent.parent / "drivelab" / "configs").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
+def test_every_shipped_config_builds(path):
+    """A recipe a user copies must at least parse and validate (a typo in a field fails here)."""
+    raw = read_yaml(path)
+    sweep = raw.pop("sweep", None)
+    if sweep is None:
+        cfg = build_config(raw)
+        assert cfg.algo == raw["algo"] and cfg.steps > 0
+        return
+    for trial in plan(sweep["grid"], sweep["seeds"]):     # every run the sweep would start
+        cfg = build_config(trial_config(raw, trial, Path("unused")))
+        assert cfg.seed == trial.seed
