@@ -222,8 +222,8 @@ def baseline(name: str, action_space: gym.Space, seed: int = 0, deterministic: b
 
     Returns:
         ``(wrapper, policy)``: the wrapper (a class, or a partial of one) to apply to each env
-        (inside its process), or None when the env needs none; and the policy, an object with ``act(obs, deterministic)``
-        and ``to_env(action)`` like a trained policy.
+        (inside its process), or None when the env needs none; and the policy, an object with
+        ``act(obs, deterministic)`` and ``to_env(action)`` like a trained policy.
     """
     if name == "random":
         return None, RandomPolicy(action_space, seed)
