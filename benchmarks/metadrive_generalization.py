@@ -14,6 +14,14 @@ deterministically on ``--heldout`` validation scenarios (MetaDrive-validation-v0
 ``RUN/generalization.json`` and ``RUN/generalization.png`` (success rate and route completion
 against env steps, train vs held-out, baselines as reference lines), unless ``--out`` says where.
 
+The run's own choice, ``RUN/checkpoints/best`` (the checkpoint that scored best in the run's
+periodic evaluation, ``eval.best_metric``), is evaluated on the held-out scenarios too, as
+``selected``: the number to report for a recipe that keeps its best checkpoint. It is honest only
+if the run chose on scenarios disjoint from the held-out ones (``eval.env_id`` another split, or
+``eval.seed`` >= ``--heldout`` on the validation split); ``selected.disjoint`` says which. ``peak``
+is the curve's row with the highest held-out success: chosen on the test scenarios themselves, an
+optimistic number, not one to report as the recipe's.
+
 ``--stochastic`` plays every policy with sampled actions instead, the checkpoints and MetaDrive's
 expert alike (``"actions": "sampled"`` in the JSON). The default protocol takes the mode (as the
 expert's reference numbers do); sampling is worth knowing about, because a PPO or SAC policy
@@ -77,7 +85,34 @@ def evaluate_run(run_dir: Path, every: int, heldout: int, train_episodes: int, n
     return curve
 
 
-def plot(curve: list[dict], baselines: dict[str, dict], out: Path, title: str) -> None:
+def evaluate_selected(run_dir: Path, heldout: int, num_envs: int, curve: list[dict], known: dict | None = None,
+                      deterministic: bool = True) -> dict | None:
+    """The run's ``checkpoints/best`` on the held-out scenarios, and whether the run chose it on
+    scenarios disjoint from them; None if the run kept no best. A row of ``curve`` or ``known`` at
+    the same step (the same weights) is reused."""
+    best_dir = run_dir / "checkpoints" / "best"
+    if not best_dir.is_dir():
+        return None
+    ckpt = load_checkpoint(best_dir)
+    cfg = checkpoint_config(ckpt)
+    spec = cfg.eval
+    chosen_on = spec.env_id or cfg.env.id
+    # Validation scenario k is reset with seed k: the run chose on seeds [seed, seed + episodes).
+    disjoint = chosen_on != HELDOUT_ENV or spec.seed >= heldout
+    if known and known.get("step") == ckpt.step:
+        return known
+    summary = next((row["heldout"] for row in curve if row["step"] == ckpt.step and "heldout" in row), None)
+    if summary is None:
+        env_cfg = dataclasses.replace(cfg.env, id=HELDOUT_ENV, kwargs={}, num_envs=num_envs)
+        summary = play(env_cfg, policy_from_checkpoint(ckpt, cfg, env_cfg), heldout, deterministic=deterministic).summary()
+    row = {"step": ckpt.step, "chosen_on": {"env_id": chosen_on, "seed": spec.seed, "episodes": spec.episodes,
+                                            "metric": spec.best_metric},
+           "disjoint": disjoint, "heldout": summary}
+    print(json.dumps({"selected": row}), flush=True)
+    return row
+
+
+def plot(curve: list[dict], baselines: dict[str, dict], selected: dict | None, out: Path, title: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -91,6 +126,10 @@ def plot(curve: list[dict], baselines: dict[str, dict], out: Path, title: str) -
             if values:
                 ax.plot([row["step"] for row in curve if split in row], values, style,
                         label=f"{'held-out' if split == 'heldout' else 'training'} scenarios")
+        if selected:
+            ax.plot([selected["step"]], [selected["heldout"][metric]], "*", markersize=14, color="tab:red",
+                    label=f"the run's best checkpoint, {selected['step']:,} steps (held-out"
+                          + ("" if selected["disjoint"] else "; chosen on some of these scenarios") + ")")
         for (name, summary), color in zip(baselines.items(), ("tab:green", "tab:gray", "tab:purple")):
             ax.axhline(summary[metric], color=color, linestyle=":", label=f"{name} (held-out)")
         ax.set_xlabel("env steps")
@@ -122,6 +161,7 @@ def main() -> None:
     args = parser.parse_args()
     run_dir = Path(args.run_dir)
     out = Path(args.out) if args.out else run_dir / "generalization.json"
+    out.parent.mkdir(parents=True, exist_ok=True)  # before hours of training and evaluation, not after
     try:
         wall = 0.0 if args.skip_train else train_run(args.config, run_dir, args.steps)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the run saved a checkpoint of this moment
@@ -140,18 +180,21 @@ def main() -> None:
     baselines = {name: previous.get("baselines", {}).get(name)
                  or evaluate_baseline(name, heldout_env, args.heldout, deterministic=not args.stochastic).summary()
                  for name in args.baselines}
+    selected = evaluate_selected(run_dir, args.heldout, args.num_envs, curve, previous.get("selected"),
+                                 deterministic=not args.stochastic)
     metrics = [row for row in curve if "heldout" in row]
-    best = max(metrics, key=lambda row: (row["heldout"]["success_rate"], row["heldout"]["route_completion"]), default=None)
+    peak = max(metrics, key=lambda row: (row["heldout"]["success_rate"], row["heldout"]["route_completion"]), default=None)
     cfg = read_yaml(run_dir / "config.yaml")
     result = {"benchmark": "metadrive-generalization", "run_dir": str(run_dir), "algo": cfg["algo"],
               "train_env": cfg["env"]["id"], "heldout_env": HELDOUT_ENV, "heldout_episodes": args.heldout,
               "train_episodes": args.train_episodes, "actions": actions, "train_wall_s_this_call": wall,
-              "eval_wall_s": time.perf_counter() - started, "curve": curve, "baselines": baselines, "best": best}
+              "eval_wall_s": time.perf_counter() - started, "curve": curve, "selected": selected, "peak": peak,
+              "baselines": baselines}
     out.write_text(json.dumps(result, indent=1) + "\n")
-    plot(curve, baselines, out.with_suffix(".png"),
+    plot(curve, baselines, selected, out.with_suffix(".png"),
          f"{cfg['algo']} trained on {cfg['env']['id']}: {args.heldout} held-out validation scenarios"
          + (", sampled actions" if args.stochastic else ""))
-    print(json.dumps({"best": best, "baselines": baselines}, indent=1))
+    print(json.dumps({"selected": selected, "peak": peak, "baselines": baselines}, indent=1))
     print(f"wrote {out} and {out.with_suffix('.png')}")
 
 
