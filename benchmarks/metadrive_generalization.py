@@ -56,6 +56,12 @@ def train_run(config: str | None, run_dir: Path, steps: int | None) -> float:
     return time.perf_counter() - started
 
 
+def heldout_env_config(env: EnvConfig, num_envs: int) -> EnvConfig:
+    """The validation split with the run's wrappers (action grid, filters, reward) but not its
+    kwargs, which may redefine the scenario range."""
+    return dataclasses.replace(env, id=HELDOUT_ENV, kwargs={}, num_envs=num_envs)
+
+
 def evaluate_run(run_dir: Path, every: int, heldout: int, train_episodes: int, num_envs: int,
                  from_step: int = 0, known: dict[int, dict] | None = None, deterministic: bool = True) -> list[dict]:
     """Evaluate the chosen checkpoints; rows in ``known`` (by step, same protocol) are reused."""
@@ -72,10 +78,8 @@ def evaluate_run(run_dir: Path, every: int, heldout: int, train_episodes: int, n
         ckpt = load_checkpoint(path)
         cfg = checkpoint_config(ckpt)
         row = {"step": ckpt.step}
-        # Held-out: the validation split with the run's wrappers (action grid, filters, reward)
-        # but not its kwargs, which may redefine the scenario range.
         for name, env_cfg, episodes in (
-                ("heldout", dataclasses.replace(cfg.env, id=HELDOUT_ENV, kwargs={}, num_envs=num_envs), heldout),
+                ("heldout", heldout_env_config(cfg.env, num_envs), heldout),
                 ("train", dataclasses.replace(cfg.env, num_envs=num_envs), train_episodes)):
             if episodes:
                 policy = policy_from_checkpoint(ckpt, cfg, env_cfg)
@@ -94,16 +98,16 @@ def evaluate_selected(run_dir: Path, heldout: int, num_envs: int, curve: list[di
     if not best_dir.is_dir():
         return None
     ckpt = load_checkpoint(best_dir)
+    if known and known.get("step") == ckpt.step:
+        return known
     cfg = checkpoint_config(ckpt)
     spec = cfg.eval
     chosen_on = spec.env_id or cfg.env.id
     # Validation scenario k is reset with seed k: the run chose on seeds [seed, seed + episodes).
     disjoint = chosen_on != HELDOUT_ENV or spec.seed >= heldout
-    if known and known.get("step") == ckpt.step:
-        return known
     summary = next((row["heldout"] for row in curve if row["step"] == ckpt.step and "heldout" in row), None)
     if summary is None:
-        env_cfg = dataclasses.replace(cfg.env, id=HELDOUT_ENV, kwargs={}, num_envs=num_envs)
+        env_cfg = heldout_env_config(cfg.env, num_envs)
         summary = play(env_cfg, policy_from_checkpoint(ckpt, cfg, env_cfg), heldout, deterministic=deterministic).summary()
     row = {"step": ckpt.step, "chosen_on": {"env_id": chosen_on, "seed": spec.seed, "episodes": spec.episodes,
                                             "metric": spec.best_metric},
