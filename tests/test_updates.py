@@ -124,6 +124,18 @@ def test_ppo_update_clips_the_ratio_and_the_value_by_hand():
     _assert_params(agent, expected)
 
 
+def test_ppo_target_kl_stops_the_epochs_and_logs_how_many_ran():
+    torch.manual_seed(0)
+    agent = ActorCritic(OBS, DISCRETE, [4])
+    # rho = exp(-offset) far from 1: the approximate KL is ~0.47 before any step
+    batch = _rollout_batch(agent, [-1.0, 1.0, -0.8, 0.8, -1.0, 1.0])
+    params = dict(update_epochs=5, num_minibatches=1, max_grad_norm=1e9)
+    stopped = ppo.update(agent, torch.optim.SGD(agent.parameters(), lr=LR), batch, ppo.Params(target_kl=0.01, **params))
+    assert stopped["loss/epochs"].item() == 1  # checked once per epoch, after its last minibatch
+    full = ppo.update(agent, torch.optim.SGD(agent.parameters(), lr=LR), batch, ppo.Params(**params))
+    assert full["loss/epochs"].item() == 5
+
+
 def test_grpo_update_is_the_clipped_ratio_plus_the_kl_penalty():
     torch.manual_seed(0)
     agent = ActorCritic(OBS, DISCRETE, [4], critic=False)

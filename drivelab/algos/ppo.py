@@ -89,8 +89,8 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutB
         logged = {"loss/behaviour_weight_mean": behaviour_weights.mean(), "loss/behaviour_weight_max": behaviour_weights.max()}
     minibatch = max(1, size // hp.num_minibatches)
     stats = torch.zeros(5)  # policy loss, value loss, entropy, approx kl, clip fraction (summed)
-    steps = 0
-    for _ in range(hp.update_epochs):
+    steps = epochs = 0
+    for epochs in range(1, hp.update_epochs + 1):
         order = torch.randperm(size, generator=generator)
         for start in range(0, size - minibatch + 1, minibatch):
             idx = order[start:start + minibatch]
@@ -116,7 +116,7 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutB
     mean = stats / steps
     return {"loss/policy": mean[0], "loss/value": mean[1], "loss/entropy": mean[2], "loss/approx_kl": mean[3],
             "loss/clip_fraction": mean[4], "loss/explained_variance": explained_variance(batch.values, batch.returns),
-            **logged}
+            "loss/epochs": torch.tensor(float(epochs)), **logged}
 
 
 def wait_for(job: Future) -> tuple[dict[str, torch.Tensor], bool]:
