@@ -10,7 +10,8 @@ For each number of env processes N (default 1, 2 and 4), on the env of a PPO con
   background thread while the envs collect the next rollout, see drivelab/algos/ppo.py);
 * ``sb3``: Stable-Baselines3's PPO (``pip install stable-baselines3``) on the same env factory in a
   ``SubprocVecEnv``, with the config's rollout length, minibatch, epochs, network, Gaussian std
-  and normalisation (``VecNormalize``).
+  and normalisation (``VecNormalize``), and its ``target_kl`` (SB3 stops at the first minibatch
+  beyond 1.5x of it, drivelab at the end of the epoch beyond it).
 
 Both sides use one torch thread on the CPU while collecting and the config's activation;
 drivelab's update runs with the config's ``update_threads`` (``--update-threads N`` adds
@@ -25,6 +26,15 @@ per pair; ``--repeats`` pairs per contender, the JSON keeps every pair and the m
 with nothing else on the machine:
 
     python benchmarks/throughput.py --config configs/ppo_metadrive_drive.yaml --steps 12288 --repeats 2 --out throughput.json
+
+A fresh policy is the most expensive to train: with ``target_kl`` the update of a trained policy
+stops after a few of its epochs (the drive recipe runs 3-5 of its 10 between 100k and 500k steps,
+~9 in its last 100k, where the decayed learning rate moves the policy less). ``--from-checkpoint
+RUN/checkpoints/step_N`` measures drivelab's contenders continuing a run of the config from that
+checkpoint instead (weights, optimiser, normalisation statistics and schedules as they were there),
+which is the speed such a run trains at in its steady state. A trained car also loads the env
+differently from a random one, so each of those pairs gets a third measurement, ``acting``: the
+checkpoint's policy sampling actions in the same envs without learning (``*_vs_acting``).
 """
 
 from __future__ import annotations
@@ -33,6 +43,7 @@ import argparse
 import csv
 import functools
 import json
+import shutil
 import statistics
 import sys
 import tempfile
@@ -40,10 +51,12 @@ import time
 from pathlib import Path
 
 import torch
+from gymnasium.vector import AutoresetMode
 
-from drivelab.api import build_config, train
+from drivelab.api import build_config, checkpoint_config, policy_from_checkpoint, train
+from drivelab.checkpoint import checkpoint_step, load_checkpoint, resolve_checkpoint
 from drivelab.config import read_yaml, set_dotted
-from drivelab.envs import make_env
+from drivelab.envs import make_env, make_vector_env
 from drivelab.nets import activation
 from training import report, random_steps_per_second  # benchmarks/training.py
 
@@ -56,20 +69,26 @@ def steady_steps_per_second(rows: list[tuple[int, float]]) -> float:
     return (step1 - step0) / (time1 - time0)
 
 
-def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int, overlap: bool = False) -> float:
+def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int, overlap: bool = False,
+                   checkpoint: Path | None = None) -> float:
+    """Steady steps/s of drivelab's PPO; from ``checkpoint`` (a checkpoint directory of a run of
+    this config) it continues that run for ``steps`` steps instead of starting afresh."""
     data = json.loads(json.dumps(data))
     if overlap:
         set_dotted(data, "ppo.overlap_update", True)
     set_dotted(data, "env.num_envs", num_envs)
     set_dotted(data, "env.step_groups", groups)
     with tempfile.TemporaryDirectory() as tmp:
-        set_dotted(data, "run_dir", str(Path(tmp) / "run"))
-        set_dotted(data, "steps", steps)
+        run_dir = Path(tmp) / "run"
+        set_dotted(data, "run_dir", str(run_dir))
+        set_dotted(data, "steps", steps + (checkpoint_step(checkpoint) if checkpoint else 0))
         set_dotted(data, "eval.every", 0)
         set_dotted(data, "checkpoint_every", 10**9)
         cfg = build_config(data)
         cfg.log_every = cfg.algo_params.num_steps * num_envs   # one row per iteration
-        train(cfg, progress=False)
+        if checkpoint:
+            shutil.copytree(checkpoint, run_dir / "checkpoints" / checkpoint.name)
+        train(cfg, progress=False, resume=checkpoint is not None)
         with open(Path(cfg.run_dir) / "metrics.csv") as f:
             rows = [(int(r["step"]), float(r["time"])) for r in csv.DictReader(f) if r["name"] == "perf/steps_per_s"]
     if overlap:
@@ -78,6 +97,26 @@ def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int, ov
         # span holds as many collections as the steps it counts.
         rows = rows[:-1]
     return steady_steps_per_second(rows)
+
+
+def acting_steps_per_second(env_cfg, checkpoint: Path, seconds: float) -> float:
+    """Vectorised env steps/s with the checkpoint's policy sampling the actions, as in training
+    but without storing or learning: the ceiling for continuing that run, since a trained car
+    loads the env differently from a random one (episodes end, and maps are rebuilt, at other
+    rates)."""
+    ckpt = load_checkpoint(checkpoint)
+    policy = policy_from_checkpoint(ckpt, checkpoint_config(ckpt), env_cfg)
+    envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.SAME_STEP)
+    try:
+        obs, _ = envs.reset(seed=0)
+        steps, started = 0, time.perf_counter()
+        while time.perf_counter() - started < seconds:
+            action = policy.act(torch.as_tensor(obs), deterministic=False)
+            obs = envs.step(policy.to_env(action))[0]
+            steps += envs.num_envs
+        return steps / (time.perf_counter() - started)
+    finally:
+        envs.close()
 
 
 def sb3_speed(data: dict, num_envs: int, steps: int, threads: int = 1) -> float:
@@ -109,7 +148,7 @@ def sb3_speed(data: dict, num_envs: int, steps: int, threads: int = 1) -> float:
     model = PPO("MlpPolicy", envs, learning_rate=hp.lr, n_steps=hp.num_steps,
                 batch_size=hp.num_steps * num_envs // hp.num_minibatches, n_epochs=hp.update_epochs, gamma=hp.gamma,
                 gae_lambda=hp.gae_lambda, clip_range=hp.clip_coef, ent_coef=hp.ent_coef, vf_coef=hp.vf_coef,
-                max_grad_norm=hp.max_grad_norm, seed=cfg.seed, device="cpu",
+                max_grad_norm=hp.max_grad_norm, target_kl=hp.target_kl, seed=cfg.seed, device="cpu",
                 policy_kwargs={"net_arch": {"pi": list(hp.hidden), "vf": list(hp.hidden)},
                                "activation_fn": activation(hp.activation), "log_std_init": hp.log_std_init})
     try:
@@ -134,21 +173,26 @@ def main() -> None:
                         "(drivelab_update_threads)")
     parser.add_argument("--skip", nargs="*", default=[], choices=["drivelab", "drivelab_groups", "drivelab_overlap",
                                                                    "sb3", "drivelab_update_threads"])
+    parser.add_argument("--from-checkpoint", metavar="CKPT",
+                        help="drivelab's contenders continue this checkpoint (or run directory) of a run of --config "
+                             "instead of starting afresh: the steady state of a trained policy, e.g. with target_kl "
+                             "ending its updates early (SB3 still starts afresh)")
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args()
+    checkpoint = resolve_checkpoint(args.from_checkpoint) if args.from_checkpoint else None
     torch.set_num_threads(1)  # as drivelab's trainer (cfg.torch_threads): the env processes need the cores
     data = read_yaml(args.config)
     if args.num_steps:
         set_dotted(data, "ppo.num_steps", args.num_steps)
     contenders = {
-        "drivelab": lambda n: drivelab_speed(data, n, None, args.steps),
-        "drivelab_groups": lambda n: drivelab_speed(data, n, n, args.steps),
-        "drivelab_overlap": lambda n: drivelab_speed(data, n, None, args.steps, overlap=True),
+        "drivelab": lambda n: drivelab_speed(data, n, None, args.steps, checkpoint=checkpoint),
+        "drivelab_groups": lambda n: drivelab_speed(data, n, n, args.steps, checkpoint=checkpoint),
+        "drivelab_overlap": lambda n: drivelab_speed(data, n, None, args.steps, overlap=True, checkpoint=checkpoint),
         "sb3": lambda n: sb3_speed(data, n, args.steps, args.sb3_threads),
     }
     if args.update_threads:
         contenders["drivelab_update_threads"] = lambda n: drivelab_speed({**data, "update_threads": args.update_threads},
-                                                                         n, None, args.steps)
+                                                                         n, None, args.steps, checkpoint=checkpoint)
     results = []
     for n in args.num_envs:
         env_cfg = build_config({**data, "env": {**data["env"], "num_envs": n}}).env
@@ -158,15 +202,21 @@ def main() -> None:
                 continue
             pairs = []
             for _ in range(args.repeats):
-                raw = random_steps_per_second(env_cfg, args.seconds)
-                pairs.append({"raw": raw, "trained": measure(n)})
+                pair = {"raw": random_steps_per_second(env_cfg, args.seconds)}
+                if checkpoint and name != "sb3":
+                    pair["acting"] = acting_steps_per_second(env_cfg, checkpoint, args.seconds)
+                pair["trained"] = measure(n)
+                pairs.append(pair)
             row["pairs"][name] = pairs
             row[name] = statistics.median(p["trained"] for p in pairs)
             row[f"{name}_vs_raw"] = statistics.median(p["trained"] / p["raw"] for p in pairs)
+            if "acting" in pairs[0]:
+                row[f"{name}_vs_acting"] = statistics.median(p["trained"] / p["acting"] for p in pairs)
         row["raw"] = statistics.median(p["raw"] for pairs in row["pairs"].values() for p in pairs)
         print(json.dumps({k: v for k, v in row.items() if k != "pairs"}), flush=True)
         results.append(row)
     report({"benchmark": "onpolicy-throughput", "config": args.config, "steps": args.steps,
+            "from_checkpoint": str(checkpoint) if checkpoint else None,
             "repeats": args.repeats, "sb3_threads": args.sb3_threads, "results": results}, args.out)
 
 
