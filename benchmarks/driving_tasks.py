@@ -20,7 +20,7 @@ import argparse
 import sys
 import time
 
-from training import report, random_steps_per_second  # benchmarks/ is on sys.path when run as a script
+from training import report, env_steps_per_second  # benchmarks/ is on sys.path when run as a script
 
 from drivelab.config import EnvConfig
 from drivelab.envs import make_env
@@ -69,7 +69,7 @@ def main() -> None:
             continue
         single, episode_length = single_env_steps_per_second(cfg, args.seconds)
         cfg.num_envs = args.num_envs
-        vector = random_steps_per_second(cfg, args.seconds)
+        vector = env_steps_per_second(cfg, args.seconds)
         results.append({"task": name, "env": cfg.id, "kwargs": cfg.kwargs, "obs_filters": cfg.obs_filters,
                         "single_env_steps_per_s": single, "random_episode_length": episode_length,
                         f"vector_{args.num_envs}_envs_steps_per_s": vector})

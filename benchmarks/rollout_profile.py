@@ -64,6 +64,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)  # as drivelab's trainer (cfg.torch_threads)
     data = read_yaml(args.config)
+    set_dotted(data, "env.step_groups", None)  # lockstep unless --set env.step_groups=N
     for item in args.set:
         field, value = item.split("=", 1)
         set_dotted(data, field, yaml.safe_load(value))

@@ -51,14 +51,13 @@ import time
 from pathlib import Path
 
 import torch
-from gymnasium.vector import AutoresetMode
 
-from drivelab.api import build_config, checkpoint_config, policy_from_checkpoint, train
-from drivelab.checkpoint import checkpoint_step, load_checkpoint, resolve_checkpoint
+from drivelab.api import build_config, load_policy, train
+from drivelab.checkpoint import checkpoint_step, resolve_checkpoint
 from drivelab.config import read_yaml, set_dotted
-from drivelab.envs import make_env, make_vector_env
+from drivelab.envs import make_env
 from drivelab.nets import activation
-from training import report, random_steps_per_second  # benchmarks/training.py
+from training import report, env_steps_per_second  # benchmarks/training.py
 
 
 def steady_steps_per_second(rows: list[tuple[int, float]]) -> float:
@@ -97,26 +96,6 @@ def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int, ov
         # span holds as many collections as the steps it counts.
         rows = rows[:-1]
     return steady_steps_per_second(rows)
-
-
-def acting_steps_per_second(env_cfg, checkpoint: Path, seconds: float) -> float:
-    """Vectorised env steps/s with the checkpoint's policy sampling the actions, as in training
-    but without storing or learning: the ceiling for continuing that run, since a trained car
-    loads the env differently from a random one (episodes end, and maps are rebuilt, at other
-    rates)."""
-    ckpt = load_checkpoint(checkpoint)
-    policy = policy_from_checkpoint(ckpt, checkpoint_config(ckpt), env_cfg)
-    envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.SAME_STEP)
-    try:
-        obs, _ = envs.reset(seed=0)
-        steps, started = 0, time.perf_counter()
-        while time.perf_counter() - started < seconds:
-            action = policy.act(torch.as_tensor(obs), deterministic=False)
-            obs = envs.step(policy.to_env(action))[0]
-            steps += envs.num_envs
-        return steps / (time.perf_counter() - started)
-    finally:
-        envs.close()
 
 
 def sb3_speed(data: dict, num_envs: int, steps: int, threads: int = 1) -> float:
@@ -180,6 +159,9 @@ def main() -> None:
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args()
     checkpoint = resolve_checkpoint(args.from_checkpoint) if args.from_checkpoint else None
+    # `acting`: the checkpoint's policy sampling actions without learning, the ceiling for continuing
+    # its run (a trained car ends episodes, and rebuilds maps, at other rates than a random one)
+    acting_policy = load_policy(checkpoint)[0] if checkpoint else None
     torch.set_num_threads(1)  # as drivelab's trainer (cfg.torch_threads): the env processes need the cores
     data = read_yaml(args.config)
     if args.num_steps:
@@ -195,16 +177,16 @@ def main() -> None:
                                                                          n, None, args.steps, checkpoint=checkpoint)
     results = []
     for n in args.num_envs:
-        env_cfg = build_config({**data, "env": {**data["env"], "num_envs": n}}).env
+        env_cfg = build_config({**data, "env": {**data["env"], "num_envs": n, "step_groups": None}}).env
         row: dict = {"num_envs": n, "pairs": {}}
         for name, measure in contenders.items():
             if name in args.skip or (name == "drivelab_groups" and n == 1):
                 continue
             pairs = []
             for _ in range(args.repeats):
-                pair = {"raw": random_steps_per_second(env_cfg, args.seconds)}
-                if checkpoint and name != "sb3":
-                    pair["acting"] = acting_steps_per_second(env_cfg, checkpoint, args.seconds)
+                pair = {"raw": env_steps_per_second(env_cfg, args.seconds)}
+                if acting_policy is not None and name != "sb3":
+                    pair["acting"] = env_steps_per_second(env_cfg, args.seconds, acting_policy)
                 pair["trained"] = measure(n)
                 pairs.append(pair)
             row["pairs"][name] = pairs

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 from gymnasium.vector import AutoresetMode
 
 from drivelab.api import build_config, evaluate_checkpoint, train
@@ -49,15 +50,20 @@ def load(args) -> object:
     return build_config(data)
 
 
-def random_steps_per_second(env_cfg, seconds: float = 20.0) -> float:
-    """Vectorised env steps/s with random actions for an `EnvConfig` (no policy, no learning)."""
+def env_steps_per_second(env_cfg, seconds: float = 20.0, policy=None) -> float:
+    """Vectorised env steps/s for an `EnvConfig` without learning: random actions, or with
+    ``policy`` (a trained policy, e.g. ``drivelab.api.load_policy``) its sampled actions."""
     envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.SAME_STEP)
     try:
         envs.action_space.seed(0)
-        envs.reset(seed=0)
+        obs, _ = envs.reset(seed=0)
         steps, started = 0, time.perf_counter()
         while time.perf_counter() - started < seconds:
-            envs.step(envs.action_space.sample())
+            if policy is None:
+                action = envs.action_space.sample()
+            else:
+                action = policy.to_env(policy.act(torch.as_tensor(obs), deterministic=False))
+            obs = envs.step(action)[0]
             steps += envs.num_envs
         return steps / (time.perf_counter() - started)
     finally:
@@ -77,7 +83,7 @@ def speed(args) -> dict:
     cfg = load(args)
     with tempfile.TemporaryDirectory() as tmp:
         cfg.run_dir, cfg.steps = str(Path(tmp) / "run"), args.steps
-        raw = random_steps_per_second(cfg.env, args.seconds)
+        raw = env_steps_per_second(cfg.env, args.seconds)
         started = time.perf_counter()
         train(cfg, progress=False)
         wall = time.perf_counter() - started
