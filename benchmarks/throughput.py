@@ -2,7 +2,8 @@
 
 For each number of env processes N (default 1, 2 and 4), on the env of a PPO config:
 
-* ``raw``: random actions through drivelab's lockstep subprocess vector env: the ceiling;
+* ``raw``: random actions through drivelab's lockstep subprocess vector env: the ceiling (for
+  ``drivelab_groups`` also ``raw_groups``: random actions with the envs stepping as N groups);
 * ``drivelab``: drivelab's PPO as configured by default: all envs step together (lockstep);
 * ``drivelab_groups``: drivelab's PPO with ``env.step_groups: N``, one step group per env
   (drivelab.envs.groups: each group steps while the trainer chooses the others' actions);
@@ -34,7 +35,9 @@ RUN/checkpoints/step_N`` measures drivelab's contenders continuing a run of the 
 checkpoint instead (weights, optimiser, normalisation statistics and schedules as they were there),
 which is the speed such a run trains at in its steady state. A trained car also loads the env
 differently from a random one, so each of those pairs gets a third measurement, ``acting``: the
-checkpoint's policy sampling actions in the same envs without learning (``*_vs_acting``).
+checkpoint's policy sampling actions in the same envs, stepped the same way (lockstep, or N
+groups for ``drivelab_groups``), without learning (``*_vs_acting``). ``--set FIELD=VALUE``
+changes the config of every drivelab contender, e.g. ``--set update_threads=2``.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ import time
 from pathlib import Path
 
 import torch
+import yaml
 
 from drivelab.api import build_config, load_policy, train
 from drivelab.checkpoint import checkpoint_step, resolve_checkpoint
@@ -156,6 +160,8 @@ def main() -> None:
                         help="drivelab's contenders continue this checkpoint (or run directory) of a run of --config "
                              "instead of starting afresh: the steady state of a trained policy, e.g. with target_kl "
                              "ending its updates early (SB3 still starts afresh)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                        help="config overrides for drivelab's contenders (SB3 reads the config as given)")
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args()
     checkpoint = resolve_checkpoint(args.from_checkpoint) if args.from_checkpoint else None
@@ -166,14 +172,18 @@ def main() -> None:
     data = read_yaml(args.config)
     if args.num_steps:
         set_dotted(data, "ppo.num_steps", args.num_steps)
+    tuned = json.loads(json.dumps(data))  # drivelab's contenders: the config with --set applied
+    for item in args.set:
+        field, value = item.split("=", 1)
+        set_dotted(tuned, field, yaml.safe_load(value))
     contenders = {
-        "drivelab": lambda n: drivelab_speed(data, n, None, args.steps, checkpoint=checkpoint),
-        "drivelab_groups": lambda n: drivelab_speed(data, n, n, args.steps, checkpoint=checkpoint),
-        "drivelab_overlap": lambda n: drivelab_speed(data, n, None, args.steps, overlap=True, checkpoint=checkpoint),
+        "drivelab": lambda n: drivelab_speed(tuned, n, None, args.steps, checkpoint=checkpoint),
+        "drivelab_groups": lambda n: drivelab_speed(tuned, n, n, args.steps, checkpoint=checkpoint),
+        "drivelab_overlap": lambda n: drivelab_speed(tuned, n, None, args.steps, overlap=True, checkpoint=checkpoint),
         "sb3": lambda n: sb3_speed(data, n, args.steps, args.sb3_threads),
     }
     if args.update_threads:
-        contenders["drivelab_update_threads"] = lambda n: drivelab_speed({**data, "update_threads": args.update_threads},
+        contenders["drivelab_update_threads"] = lambda n: drivelab_speed({**tuned, "update_threads": args.update_threads},
                                                                          n, None, args.steps, checkpoint=checkpoint)
     results = []
     for n in args.num_envs:
@@ -182,23 +192,26 @@ def main() -> None:
         for name, measure in contenders.items():
             if name in args.skip or (name == "drivelab_groups" and n == 1):
                 continue
+            groups = n if name == "drivelab_groups" else 1  # how the contender's envs step
             pairs = []
             for _ in range(args.repeats):
                 pair = {"raw": env_steps_per_second(env_cfg, args.seconds)}
+                if groups > 1:
+                    pair["raw_groups"] = env_steps_per_second(env_cfg, args.seconds, groups=groups)
                 if acting_policy is not None and name != "sb3":
-                    pair["acting"] = env_steps_per_second(env_cfg, args.seconds, acting_policy)
+                    pair["acting"] = env_steps_per_second(env_cfg, args.seconds, acting_policy, groups)
                 pair["trained"] = measure(n)
                 pairs.append(pair)
             row["pairs"][name] = pairs
             row[name] = statistics.median(p["trained"] for p in pairs)
-            row[f"{name}_vs_raw"] = statistics.median(p["trained"] / p["raw"] for p in pairs)
-            if "acting" in pairs[0]:
-                row[f"{name}_vs_acting"] = statistics.median(p["trained"] / p["acting"] for p in pairs)
+            for ceiling in ("raw", "raw_groups", "acting"):
+                if ceiling in pairs[0]:
+                    row[f"{name}_vs_{ceiling}"] = statistics.median(p["trained"] / p[ceiling] for p in pairs)
         row["raw"] = statistics.median(p["raw"] for pairs in row["pairs"].values() for p in pairs)
         print(json.dumps({k: v for k, v in row.items() if k != "pairs"}), flush=True)
         results.append(row)
     report({"benchmark": "onpolicy-throughput", "config": args.config, "steps": args.steps,
-            "from_checkpoint": str(checkpoint) if checkpoint else None,
+            "from_checkpoint": str(checkpoint) if checkpoint else None, "overrides": args.set,
             "repeats": args.repeats, "sb3_threads": args.sb3_threads, "results": results}, args.out)
 
 

@@ -31,7 +31,7 @@ from gymnasium.vector import AutoresetMode
 from drivelab.api import build_config, evaluate_checkpoint, train
 from drivelab.checkpoint import checkpoint_step
 from drivelab.config import read_yaml, set_dotted
-from drivelab.envs import make_vector_env
+from drivelab.envs.groups import EnvGroups
 
 
 def report(result: dict, out: str | None) -> None:
@@ -50,21 +50,35 @@ def load(args) -> object:
     return build_config(data)
 
 
-def env_steps_per_second(env_cfg, seconds: float = 20.0, policy=None) -> float:
+def env_steps_per_second(env_cfg, seconds: float = 20.0, policy=None, groups: int = 1) -> float:
     """Vectorised env steps/s for an `EnvConfig` without learning: random actions, or with
-    ``policy`` (a trained policy, e.g. ``drivelab.api.load_policy``) its sampled actions."""
-    envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.SAME_STEP)
+    ``policy`` (a trained policy, e.g. ``drivelab.api.load_policy``) its sampled actions.
+
+    ``groups > 1`` steps the envs as that many independent groups, as ``env.step_groups`` does in
+    training (:class:`drivelab.envs.groups.EnvGroups`): a group's next actions are chosen as soon
+    as its step is back, while the others simulate. With 1 group it is a lockstep vector env."""
+    envs = EnvGroups(env_cfg, groups, autoreset_mode=AutoresetMode.SAME_STEP)
     try:
-        envs.action_space.seed(0)
-        obs, _ = envs.reset(seed=0)
-        steps, started = 0, time.perf_counter()
-        while time.perf_counter() - started < seconds:
+        spaces = [group.action_space for group in envs.envs]
+        for group, space in enumerate(spaces):
+            space.seed(group)
+        obs = envs.reset(list(range(env_cfg.num_envs)))  # env i on seed i
+
+        def act(group: int) -> None:
             if policy is None:
-                action = envs.action_space.sample()
+                envs.send(group, spaces[group].sample())
             else:
-                action = policy.to_env(policy.act(torch.as_tensor(obs), deterministic=False))
-            obs = envs.step(action)[0]
-            steps += envs.num_envs
+                group_obs = torch.as_tensor(obs[envs.slices[group]])
+                envs.send(group, policy.to_env(policy.act(group_obs, deterministic=False)))
+
+        steps, started = 0, time.perf_counter()
+        for group in range(groups):
+            act(group)
+        while time.perf_counter() - started < seconds:
+            group = envs.wait_any(list(range(groups)))
+            obs[envs.slices[group]] = envs.receive(group)[0]
+            steps += envs.slices[group].stop - envs.slices[group].start
+            act(group)
         return steps / (time.perf_counter() - started)
     finally:
         envs.close()
