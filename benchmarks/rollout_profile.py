@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 
 import torch
-import yaml
 from gymnasium.vector import AsyncVectorEnv
 
 import drivelab.algos.ppo as ppo
@@ -32,7 +31,7 @@ from drivelab.config import read_yaml, set_dotted
 from drivelab.envs.groups import EnvGroups
 from drivelab.episodes import EpisodeTracker
 from drivelab.rollout import RolloutCollector
-from training import report  # benchmarks/training.py
+from training import apply_overrides, report  # benchmarks/training.py
 
 SECONDS: dict[str, float] = collections.defaultdict(float)
 CALLS: collections.Counter = collections.Counter()
@@ -65,9 +64,7 @@ def main() -> None:
     torch.set_num_threads(1)  # as drivelab's trainer (cfg.torch_threads)
     data = read_yaml(args.config)
     set_dotted(data, "env.step_groups", None)  # lockstep unless --set env.step_groups=N
-    for item in args.set:
-        field, value = item.split("=", 1)
-        set_dotted(data, field, yaml.safe_load(value))
+    apply_overrides(data, args.set)
     for field, value in {"env.num_envs": args.num_envs, "steps": args.steps, "eval.every": 0,
                          "checkpoint_every": 10**9}.items():
         set_dotted(data, field, value)

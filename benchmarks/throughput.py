@@ -43,6 +43,7 @@ changes the config of every drivelab contender, e.g. ``--set update_threads=2``.
 from __future__ import annotations
 
 import argparse
+import copy
 import csv
 import functools
 import json
@@ -54,14 +55,13 @@ import time
 from pathlib import Path
 
 import torch
-import yaml
 
 from drivelab.api import build_config, load_policy, train
 from drivelab.checkpoint import checkpoint_step, resolve_checkpoint
 from drivelab.config import read_yaml, set_dotted
 from drivelab.envs import make_env
 from drivelab.nets import activation
-from training import report, env_steps_per_second  # benchmarks/training.py
+from training import apply_overrides, env_steps_per_second, report  # benchmarks/training.py
 
 
 def steady_steps_per_second(rows: list[tuple[int, float]]) -> float:
@@ -76,7 +76,7 @@ def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int, ov
                    checkpoint: Path | None = None) -> float:
     """Steady steps/s of drivelab's PPO; from ``checkpoint`` (a checkpoint directory of a run of
     this config) it continues that run for ``steps`` steps instead of starting afresh."""
-    data = json.loads(json.dumps(data))
+    data = copy.deepcopy(data)
     if overlap:
         set_dotted(data, "ppo.overlap_update", True)
     set_dotted(data, "env.num_envs", num_envs)
@@ -172,10 +172,8 @@ def main() -> None:
     data = read_yaml(args.config)
     if args.num_steps:
         set_dotted(data, "ppo.num_steps", args.num_steps)
-    tuned = json.loads(json.dumps(data))  # drivelab's contenders: the config with --set applied
-    for item in args.set:
-        field, value = item.split("=", 1)
-        set_dotted(tuned, field, yaml.safe_load(value))
+    tuned = copy.deepcopy(data)  # drivelab's contenders: the config with --set applied
+    apply_overrides(tuned, args.set)
     contenders = {
         "drivelab": lambda n: drivelab_speed(tuned, n, None, args.steps, checkpoint=checkpoint),
         "drivelab_groups": lambda n: drivelab_speed(tuned, n, n, args.steps, checkpoint=checkpoint),

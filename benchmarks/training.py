@@ -30,7 +30,7 @@ from gymnasium.vector import AutoresetMode
 
 from drivelab.api import build_config, evaluate_checkpoint, train
 from drivelab.checkpoint import checkpoint_step
-from drivelab.config import read_yaml, set_dotted
+from drivelab.config import parse_value, read_yaml, set_dotted
 from drivelab.envs.groups import EnvGroups
 
 
@@ -50,6 +50,14 @@ def load(args) -> object:
     return build_config(data)
 
 
+def apply_overrides(data: dict, items: list[str]) -> None:
+    """Apply ``FIELD=VALUE`` overrides (a benchmark's ``--set``) to config data, values read as
+    on drivelab's command line (:func:`drivelab.config.parse_value`)."""
+    for item in items:
+        field, _, value = item.partition("=")
+        set_dotted(data, field, parse_value(value))
+
+
 def env_steps_per_second(env_cfg, seconds: float = 20.0, policy=None, groups: int = 1) -> float:
     """Vectorised env steps/s for an `EnvConfig` without learning: random actions, or with
     ``policy`` (a trained policy, e.g. ``drivelab.api.load_policy``) its sampled actions.
@@ -57,6 +65,8 @@ def env_steps_per_second(env_cfg, seconds: float = 20.0, policy=None, groups: in
     ``groups > 1`` steps the envs as that many independent groups, as ``env.step_groups`` does in
     training (:class:`drivelab.envs.groups.EnvGroups`): a group's next actions are chosen as soon
     as its step is back, while the others simulate. With 1 group it is a lockstep vector env."""
+    if groups > 1 and env_cfg.resolved_backend() != "async":
+        raise SystemExit(f"{groups} step groups need subprocess envs: set env.backend: async in the config")
     envs = EnvGroups(env_cfg, groups, autoreset_mode=AutoresetMode.SAME_STEP)
     try:
         spaces = [group.action_space for group in envs.envs]
@@ -71,13 +81,15 @@ def env_steps_per_second(env_cfg, seconds: float = 20.0, policy=None, groups: in
                 group_obs = torch.as_tensor(obs[envs.slices[group]])
                 envs.send(group, policy.to_env(policy.act(group_obs, deterministic=False)))
 
+        all_groups = list(range(groups))
+        sizes = [envs_of.stop - envs_of.start for envs_of in envs.slices]
         steps, started = 0, time.perf_counter()
-        for group in range(groups):
+        for group in all_groups:
             act(group)
         while time.perf_counter() - started < seconds:
-            group = envs.wait_any(list(range(groups)))
+            group = envs.wait_any(all_groups)
             obs[envs.slices[group]] = envs.receive(group)[0]
-            steps += envs.slices[group].stop - envs.slices[group].start
+            steps += sizes[group]
             act(group)
         return steps / (time.perf_counter() - started)
     finally:
