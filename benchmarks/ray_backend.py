@@ -47,11 +47,12 @@ def vector_steps_per_s(env_cfg: EnvConfig, seconds: float) -> float:
 
 
 def ppo_steps_per_s(backend: str, workers: int, steps: int) -> float:
-    """Steady-state PPO training steps/s on MetaDrive (the drive recipe, shorter batches)."""
+    """Steady-state PPO training steps/s on MetaDrive (the drive recipe, shorter batches), the
+    trainer stepping the envs with every backend (``act_in_workers`` needs subprocess envs)."""
     with tempfile.TemporaryDirectory() as tmp:
         result = api.train("ppo", {"id": "MetaDrive-1000envs-v0", "num_envs": workers, "backend": backend},
                            config="ppo_metadrive_drive", steps=steps, run_dir=Path(tmp) / "run", progress=False,
-                           eval={"every": 0}, log_every=1024, ppo={"num_steps": 1024, "num_minibatches": 8})
+                           eval={"every": 0}, log_every=1024, ppo={"num_steps": 1024, "num_minibatches": 8, "act_in_workers": False})
         return result.metrics["perf/steps_per_s"]
 
 

@@ -63,7 +63,10 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)  # as drivelab's trainer (cfg.torch_threads)
     data = read_yaml(args.config)
-    set_dotted(data, "env.step_groups", None)  # lockstep unless --set env.step_groups=N
+    # The trainer steps the envs (the parts timed here), lockstep, unless --set env.step_groups=N
+    # (or --set ppo.act_in_workers=true: then collect is the wait for the workers' rollouts).
+    set_dotted(data, "env.step_groups", None)
+    set_dotted(data, "ppo.act_in_workers", False)
     apply_overrides(data, args.set)
     for field, value in {"env.num_envs": args.num_envs, "steps": args.steps, "eval.every": 0,
                          "checkpoint_every": 10**9}.items():

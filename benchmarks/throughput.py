@@ -4,10 +4,13 @@ For each number of env processes N (default 1, 2 and 4), on the env of a PPO con
 
 * ``raw``: random actions through drivelab's lockstep subprocess vector env: the ceiling (for
   ``drivelab_groups`` also ``raw_groups``: random actions with the envs stepping as N groups);
-* ``drivelab``: drivelab's PPO as configured by default: all envs step together (lockstep);
-* ``drivelab_groups``: drivelab's PPO with ``env.step_groups: N``, one step group per env
-  (drivelab.envs.groups: each group steps while the trainer chooses the others' actions);
-* ``drivelab_overlap``: drivelab's PPO with ``ppo.overlap_update: true`` (each update runs in a
+* ``drivelab``: drivelab's PPO as the config sets it up, with ``env.step_groups`` unset (the drive
+  recipe sets ``ppo.act_in_workers``: each env process plays the rollout with a copy of the
+  policy, drivelab/worker_rollouts.py; without it the trainer steps the envs together);
+* ``drivelab_groups``: drivelab's PPO with the trainer stepping the envs (``act_in_workers`` off)
+  as ``env.step_groups: N``, one step group per env (drivelab.envs.groups: each group steps
+  while the trainer chooses the others' actions);
+* ``drivelab_overlap``: ``drivelab`` with ``ppo.overlap_update: true`` (each update runs in a
   background thread while the envs collect the next rollout, see drivelab/algos/ppo.py);
 * ``sb3``: Stable-Baselines3's PPO (``pip install stable-baselines3``) on the same env factory in a
   ``SubprocVecEnv``, with the config's rollout length, minibatch, epochs, network, Gaussian std
@@ -94,7 +97,7 @@ def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int, ov
         train(cfg, progress=False, resume=checkpoint is not None)
         with open(Path(cfg.run_dir) / "metrics.csv") as f:
             rows = [(int(r["step"]), float(r["time"])) for r in csv.DictReader(f) if r["name"] == "perf/steps_per_s"]
-    if overlap:
+    if cfg.algo_params.overlap_update:  # set by `overlap` or by the config (--set ppo.overlap_update=true)
         # Iteration k ends once update k is done and rollout k+1 collected meanwhile, but logs the
         # steps of rollout k: the last iteration has no rollout to collect. Without its row, the
         # span holds as many collections as the steps it counts.
@@ -174,9 +177,11 @@ def main() -> None:
         set_dotted(data, "ppo.num_steps", args.num_steps)
     tuned = copy.deepcopy(data)  # drivelab's contenders: the config with --set applied
     apply_overrides(tuned, args.set)
+    trainer_steps = copy.deepcopy(tuned)  # step groups are the trainer's way of stepping the envs
+    set_dotted(trainer_steps, "ppo.act_in_workers", False)
     contenders = {
         "drivelab": lambda n: drivelab_speed(tuned, n, None, args.steps, checkpoint=checkpoint),
-        "drivelab_groups": lambda n: drivelab_speed(tuned, n, n, args.steps, checkpoint=checkpoint),
+        "drivelab_groups": lambda n: drivelab_speed(trainer_steps, n, n, args.steps, checkpoint=checkpoint),
         "drivelab_overlap": lambda n: drivelab_speed(tuned, n, None, args.steps, overlap=True, checkpoint=checkpoint),
         "sb3": lambda n: sb3_speed(data, n, args.steps, args.sb3_threads),
     }

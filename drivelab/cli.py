@@ -4,7 +4,7 @@
     drivelab train --config configs/reinforce_metadrive.yaml --reinforce.lr 0.001 --env.kwargs.num_scenarios 10
     drivelab train --resume runs/cartpole --steps 40000
     drivelab eval runs/cartpole --episodes 10 [--env MetaDrive-validation-v0] [--json]
-    drivelab train --config ppo_metadrive_drive --env.backend ray --env.step_groups null --ray-address auto
+    drivelab train --config ppo_metadrive_drive --env.backend ray --ppo.act_in_workers false --ray-address auto
     drivelab sweep configs/ppo_cartpole.yaml --grid ppo.lr=1e-4,3e-4 --seeds 0-4 --out runs/sweep-lr
 
 Any config field can be set with a dotted flag (``--env.num_envs 4``, ``--reinforce.gamma 0.95``);

@@ -365,6 +365,10 @@ def _validate(cfg: TrainConfig) -> None:
         ("update_threads", cfg.update_threads is None or cfg.update_threads >= 1, "must be >= 1"),
         ("update_threads", cfg.update_threads is None or not getattr(cfg.algo_params, "overlap_update", False),
          "must be left unset with ppo.overlap_update (the env workers are busy while that update runs)"),
+        (f"{cfg.algo}.act_in_workers", not getattr(cfg.algo_params, "act_in_workers", False)
+         or (cfg.env.resolved_backend() == "async" and cfg.env.resolved_step_groups() == 1),
+         "needs subprocess envs (env.backend: async, or auto for a simulator such as MetaDrive) that step "
+         "together (env.step_groups unset or 1)"),
         ("checkpoint_every", cfg.checkpoint_every >= 1, "must be >= 1"),
         ("keep_checkpoints", cfg.keep_checkpoints >= 1, "must be >= 1"),
         ("stats_window", cfg.stats_window >= 1, "must be >= 1"),

@@ -27,14 +27,19 @@ DRIVING_METRICS = {
 }
 
 
+def is_episode_metric(key: str) -> bool:
+    """Whether the tracker keeps this ``info`` key: a driving metric, or the episode sum of a
+    shaped reward term (``reward/<term>``, see :mod:`drivelab.envs.rewards`)."""
+    return key in DRIVING_METRICS or key.startswith("reward/")
+
+
 def episode_info(info: dict, index: int) -> dict[str, float]:
-    """Driving metrics of sub-env ``index`` from a vector env's batched ``info``, and the episode
-    sums of shaped reward terms (``reward/<term>``, see :mod:`drivelab.envs.rewards`)."""
+    """The episode metrics (:func:`is_episode_metric`) of sub-env ``index`` from a vector env's
+    batched ``info``, under their logged names."""
     out = {}
     for key in info:
-        metric = DRIVING_METRICS.get(key) or (key if key.startswith("reward/") else None)
-        if metric and info.get(f"_{key}", np.ones(index + 1, bool))[index]:
-            out[metric] = float(info[key][index])
+        if is_episode_metric(key) and info.get(f"_{key}", np.ones(index + 1, bool))[index]:
+            out[DRIVING_METRICS.get(key, key)] = float(info[key][index])
     return out
 
 

@@ -14,6 +14,8 @@ action is ignored) and makes the two kinds of episode end explicit:
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -29,6 +31,7 @@ from drivelab.nets import ActorCritic, PolicyNetParams, sample
 from drivelab.normalize import RunningMeanStd
 from drivelab.returns import gae
 from drivelab.run import Run
+from drivelab.worker_rollouts import PolicyInWorker
 
 
 @dataclass
@@ -45,6 +48,7 @@ class ActorCriticParams(PolicyNetParams):
     max_grad_norm: float = 0.5        # clip the global gradient norm to this
     normalize_obs: bool = False   # running observation normalisation (saved with the weights)
     normalize_reward: bool = False  # divide rewards by the running std of the discounted return
+    act_in_workers: bool = False  # each env subprocess plays the rollout with its own copy of the policy (see drivelab/worker_rollouts.py)
 
     def validate(self) -> None:
         super().validate()
@@ -104,6 +108,11 @@ class RolloutCollector:
     own random generator, so a rollout's data do not depend on that order (with one group,
     torch's global generator, as before groups existed).
 
+    With ``policy_factory`` (``act_in_workers``) the env subprocesses play the rollouts
+    themselves, each with a copy of the policy that ``policy_factory(obs_space, act_space)``
+    builds and the trainer's weights of the moment (:mod:`drivelab.worker_rollouts`): no round
+    trip per step. The buffer is filled as if the trainer had stepped the envs.
+
     With ``buffers=2`` consecutive rollouts alternate between two buffers, so a batch stays
     intact while the next rollout is collected (PPO's ``overlap_update`` trains on one while the
     envs fill the other).
@@ -115,9 +124,14 @@ class RolloutCollector:
     """
 
     def __init__(self, env_cfg: EnvConfig, run: Run, *, num_steps: int, gamma: float, gae_lambda: float,
-                 scale_rewards: bool, buffers: int = 1):
+                 scale_rewards: bool, buffers: int = 1,
+                 policy_factory: Callable[[gym.Space, gym.Space], ActorCritic] | None = None):
+        # act_in_workers (the config checks that the envs are subprocesses stepping together)
+        wrapper = functools.partial(PolicyInWorker, make_policy=policy_factory) if policy_factory else None
+        self.act_in_workers = policy_factory is not None
+        self.step_timeout = env_cfg.step_timeout
         self.envs = EnvGroups(env_cfg, env_cfg.resolved_step_groups(), autoreset_mode=AutoresetMode.SAME_STEP,
-                              on_restart=run.note_env_restart)
+                              on_restart=run.note_env_restart, wrapper=wrapper)
         self.run, self.gamma, self.gae_lambda = run, gamma, gae_lambda
         n = env_cfg.num_envs
         self.obs_space, self.act_space = self.envs.single_observation_space, self.envs.single_action_space
@@ -143,6 +157,19 @@ class RolloutCollector:
         advantages as a flat batch of B = T * N samples."""
         self.buffer = buf = self.buffers[self.rollouts % len(self.buffers)]
         self.rollouts += 1
+        if self.act_in_workers:
+            last_value = self._play_in_workers(agent, buf)
+        else:
+            self._play(agent, buf)
+            last_value = agent.value(torch.as_tensor(self.obs, device=buf.values.device)).cpu().numpy()
+        if self.reward_rms is not None:
+            self._scale_rewards(buf)
+        buf.next_values[:-1] = np.where(buf.dones[:-1], buf.next_values[:-1], buf.values[1:].cpu().numpy())
+        buf.next_values[-1] = np.where(buf.dones[-1], buf.next_values[-1], last_value)
+        return buf.batch(self.gamma, self.gae_lambda)
+
+    def _play(self, agent: ActorCritic, buf: RolloutBuffer) -> None:
+        """Step the env groups T steps with ``agent``, storing every step in ``buf``."""
         num_steps = len(buf.rewards)
         row = [0] * len(self.envs)             # the next row of each group
         for group in range(len(self.envs)):
@@ -170,12 +197,38 @@ class RolloutCollector:
                 self._act(agent, group, t + 1)
             else:
                 in_flight.remove(group)
-        if self.reward_rms is not None:
-            self._scale_rewards(buf)
-        buf.next_values[:-1] = np.where(buf.dones[:-1], buf.next_values[:-1], buf.values[1:].cpu().numpy())
-        last_value = agent.value(torch.as_tensor(self.obs, device=buf.values.device)).cpu().numpy()
-        buf.next_values[-1] = np.where(buf.dones[-1], buf.next_values[-1], last_value)
-        return buf.batch(self.gamma, self.gae_lambda)
+
+    def _play_in_workers(self, agent: ActorCritic, buf: RolloutBuffer) -> np.ndarray:
+        """Each env's worker plays the T steps with a copy of ``agent``; their data go into
+        ``buf`` and the episode bookkeeping. Returns the (N,) values of the observations after
+        the last step. A worker that fails restarts them all and the rollout is played anew."""
+        num_steps, num_envs = buf.rewards.shape
+        weights = {name: value.cpu().numpy() for name, value in agent.state_dict().items()}
+        (envs,) = self.envs.envs
+        while True:
+            with self.run.timing.env:
+                rollouts = envs.call_or_restart("rollout", weights, num_steps, steps=num_steps,
+                                                timeout=self.step_timeout and self.step_timeout * num_steps)
+            if rollouts is not None:
+                break
+            every_env = np.ones(num_envs, bool)
+            self.run.episodes.restart(every_env)
+            self.envs.reset(self.run.reset_seeds(every_env))
+        device = buf.values.device
+        for env, rollout in enumerate(rollouts):
+            buf.obs[:, env] = torch.as_tensor(rollout.obs, device=device)
+            buf.actions[:, env] = torch.as_tensor(rollout.actions, device=device)
+            buf.log_probs[:, env] = torch.as_tensor(rollout.log_probs, device=device)
+            buf.values[:, env] = torch.as_tensor(rollout.values, device=device)
+            buf.rewards[:, env] = rollout.rewards
+            buf.terminated[:, env] = rollout.terminated
+            buf.dones[:, env] = rollout.terminated | rollout.truncated
+            buf.next_values[:, env] = rollout.final_values
+        # Episode bookkeeping step by step, as if the trainer had stepped the envs.
+        for t in range(num_steps):
+            ended = [rollout.episode_info.get(t, {}) for rollout in rollouts]
+            self.run.episodes.step(buf.rewards[t], buf.dones[t], stack_infos(ended) if buf.dones[t].any() else {})
+        return np.array([rollout.last_value for rollout in rollouts], np.float32)
 
     def _act(self, agent: ActorCritic, group: int, t: int) -> None:
         """Sample the group's actions for its current observations, send them, and store row t
@@ -206,6 +259,15 @@ class RolloutCollector:
 
     def close(self) -> None:
         self.envs.close()
+
+
+def stack_infos(infos: list[dict[str, float]]) -> dict[str, np.ndarray]:
+    """One info dict per env -> a vector env's batched ``info`` (``key`` and its mask ``_key``)."""
+    stacked = {}
+    for key in dict.fromkeys(key for info in infos for key in info):  # first-seen order, not a set's
+        stacked[key] = np.array([info.get(key, 0.0) for info in infos])
+        stacked[f"_{key}"] = np.array([key in info for info in infos])
+    return stacked
 
 
 class EpisodeStorage:

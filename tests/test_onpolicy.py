@@ -10,6 +10,7 @@ from gymnasium.vector import AutoresetMode
 from drivelab.algos import grpo
 from drivelab.api import build_config
 from drivelab.envs import env_spaces, make_vector_env
+from drivelab.errors import DrivelabError
 from drivelab.episodes import EpisodeTracker
 from drivelab.api import evaluate_checkpoint
 from drivelab.losses import approx_kl, clipped_surrogate_loss, value_loss
@@ -63,14 +64,23 @@ class _HandCritic(torch.nn.Module):
         return 100.0 * obs[:, :1] + 7.0
 
 
-def test_collector_uses_the_value_of_the_final_observation_on_truncation(tmp_path):
-    cfg = build_config({"algo": "ppo", "run_dir": str(tmp_path), "seed": 0,
-                        "env": {"id": "CartPole-v1", "num_envs": 2, "kwargs": {"max_episode_steps": 4}}})
-    obs_space, act_space = env_spaces(cfg.env)
+def hand_critic_agent(obs_space, act_space) -> ActorCritic:
+    """A small actor with the hand-made critic (a policy factory for the env workers too)."""
     agent = ActorCritic(obs_space, act_space, [8])
     agent.critic = _HandCritic()
+    return agent
+
+
+@pytest.mark.parametrize("in_workers", [False, True], ids=["trainer-steps", "act-in-workers"])
+def test_collector_uses_the_value_of_the_final_observation_on_truncation(in_workers, tmp_path):
+    cfg = build_config({"algo": "ppo", "run_dir": str(tmp_path), "seed": 0,
+                        "env": {"id": "CartPole-v1", "num_envs": 2, "kwargs": {"max_episode_steps": 4},
+                                "backend": "async" if in_workers else "auto"}})
+    obs_space, act_space = env_spaces(cfg.env)
+    agent = hand_critic_agent(obs_space, act_space)
     run = Run(cfg, progress=False)
-    collector = RolloutCollector(cfg.env, run, num_steps=6, gamma=0.99, gae_lambda=0.95, scale_rewards=False)
+    collector = RolloutCollector(cfg.env, run, num_steps=6, gamma=0.99, gae_lambda=0.95, scale_rewards=False,
+                                 policy_factory=hand_critic_agent if in_workers else None)
     buf = collector.buffer
     try:
         collector.collect(agent)
@@ -88,6 +98,32 @@ def test_collector_uses_the_value_of_the_final_observation_on_truncation(tmp_pat
         # (explicit Euler), so the final cart position follows from row 3's observation.
         final_x = buf.obs[3, i, 0].item() + 0.02 * buf.obs[3, i, 1].item()
         assert buf.next_values[3, i] == pytest.approx(100.0 * final_x + 7.0, rel=1e-4)
+    # the stored values and log-probs are those of the agent's weights for the stored observations
+    with torch.no_grad():
+        dist, values = agent.distribution_and_value(buf.obs.flatten(0, 1))
+        torch.testing.assert_close(values, buf.values.flatten())
+        torch.testing.assert_close(dist.log_prob(buf.actions.flatten()), buf.log_probs.flatten())
+    assert list(run.episodes.lengths) == [4, 4]   # one truncated episode per env, counted once
+
+
+def _in_workers(run_dir, algo="ppo", steps=20_000, **env):
+    cfg = build_config({"algo": algo, "steps": steps, "seed": 3, "run_dir": str(run_dir),
+                        "env": {"id": "CartPole-v1", "num_envs": 2, "backend": "async", **env},
+                        algo: {"act_in_workers": True, "num_steps": 256 if algo == "ppo" else 5}})
+    train(cfg, progress=False)
+    import csv
+
+    with open(run_dir / "metrics.csv") as f:
+        return [(row["step"], row["value"]) for row in csv.DictReader(f) if row["name"] == "episode/return"]
+
+
+def test_ppo_acting_in_the_env_workers_learns_and_repeats_itself(tmp_path):
+    first = _in_workers(tmp_path / "first")
+    assert first == _in_workers(tmp_path / "second")   # same seed, same episodes, whatever the timing
+    assert float(first[-1][1]) >= 100, first[-3:]        # CartPole's random policy: ~22
+    assert _in_workers(tmp_path / "a2c", algo="a2c", steps=2_000)   # A2C's short rollouts log episodes too
+    with pytest.raises(DrivelabError, match="'ppo.act_in_workers' needs subprocess envs"):
+        _in_workers(tmp_path / "sync", backend="sync")
 
 
 def _grouped_rollout(run_dir, pick_last: bool):
@@ -301,8 +337,6 @@ def test_on_policy_algorithms_solve_cartpole(algo, steps, params, tmp_path):
 
 
 def test_grpo_needs_whole_groups(tmp_path):
-    from drivelab.errors import DrivelabError
-
     with pytest.raises(DrivelabError, match="multiple of 'grpo.group_size'"):  # checked with the config now
         train(build_config({"algo": "grpo", "run_dir": str(tmp_path), "env": {"num_envs": 6}, "grpo": {"group_size": 4}}),
               progress=False)
@@ -311,6 +345,7 @@ def test_grpo_needs_whole_groups(tmp_path):
 @pytest.mark.parametrize("algo, params, grid", [
     ("ppo", {"num_steps": 40, "num_minibatches": 2, "update_epochs": 1}, None),   # continuous actions
     ("ppo", {"num_steps": 40, "num_minibatches": 2, "update_epochs": 1, "overlap_update": True}, None),
+    ("ppo", {"num_steps": 40, "num_minibatches": 2, "update_epochs": 1, "act_in_workers": True}, "3x3"),
     ("grpo", {"group_size": 2, "batch_steps": 40, "update_epochs": 1}, "3x3"),     # same-scenario groups
 ])
 def test_on_policy_algorithms_run_on_metadrive_in_subprocesses(algo, params, grid, tmp_path):

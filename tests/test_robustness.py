@@ -25,11 +25,17 @@ def _one_line(stderr: str) -> str:
 
 # Ctrl-C reaches the whole process group (trainer and env workers, as in a terminal); a
 # scheduler's SIGTERM reaches the trainer, which closes its workers itself.
-@pytest.mark.parametrize("sig, env", [(signal.SIGTERM, "CartPole-v1"), (signal.SIGINT, "CartPole-v1"),
-                                      (signal.SIGINT, "MetaDrive-10env-v0"), (signal.SIGTERM, "MetaDrive-10env-v0")])
-def test_a_signal_stops_the_run_with_a_checkpoint_that_resumes(sig, env, tmp_path):
+IN_WORKERS = ["--ppo.act_in_workers", "true"]   # the env workers play the rollouts (mid-rollout signals)
+
+
+@pytest.mark.parametrize("sig, env, extra", [(signal.SIGTERM, "CartPole-v1", []), (signal.SIGINT, "CartPole-v1", []),
+                                             (signal.SIGINT, "MetaDrive-10env-v0", []),
+                                             (signal.SIGTERM, "MetaDrive-10env-v0", []),
+                                             (signal.SIGINT, "MetaDrive-10env-v0", IN_WORKERS),
+                                             (signal.SIGTERM, "MetaDrive-10env-v0", IN_WORKERS)])
+def test_a_signal_stops_the_run_with_a_checkpoint_that_resumes(sig, env, extra, tmp_path):
     run_dir = tmp_path / "run"
-    cmd = [sys.executable, *TRAIN, "--steps", "100000000", "--run-dir", str(run_dir), "--env", env]
+    cmd = [sys.executable, *TRAIN, "--steps", "100000000", "--run-dir", str(run_dir), "--env", env, *extra]
     if env.startswith("MetaDrive"):  # short episodes and rollouts, so a checkpointable state comes soon
         cmd += ["--env.kwargs.horizon", "50", "--ppo.num_steps", "64"]
     # a process group of its own, as in a terminal: Ctrl-C reaches the env workers too
@@ -286,15 +292,16 @@ def test_generated_bad_input_is_one_line_and_writes_nothing(case, tmp_path_facto
     assert not run_dir.exists(), (args, "the run directory was created")
 
 
-@pytest.mark.parametrize("fail", ["raise", "die", "hang"])
-def test_a_crashed_or_hung_env_worker_is_restarted_and_the_run_completes(fail, tmp_path):
+@pytest.mark.parametrize("fail, in_workers", [("raise", False), ("die", False), ("hang", False),
+                                              ("raise", True), ("die", True)])   # True: ppo.act_in_workers
+def test_a_crashed_or_hung_env_worker_is_restarted_and_the_run_completes(fail, in_workers, tmp_path):
     from drivelab.api import build_config, train
 
     marker = tmp_path / "failed"
     cfg = build_config({"algo": "ppo", "steps": 1024, "seed": 0, "run_dir": str(tmp_path / "run"),
                         "env": {"id": "drivelab/Flaky-v0", "num_envs": 2, "backend": "async", "step_timeout": 5,
                                 "kwargs": {"fail": fail, "at_step": 100, "marker": str(marker)}},
-                        "ppo": {"num_steps": 128}})
+                        "ppo": {"num_steps": 128, "act_in_workers": in_workers}})
     train(cfg, progress=False)
     assert marker.read_text() == fail   # it did fail
     with open(tmp_path / "run" / "metrics.csv") as f:

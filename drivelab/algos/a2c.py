@@ -14,6 +14,7 @@ default), so metrics are averaged over the iterations between two logs.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -24,7 +25,7 @@ from drivelab.errors import DrivelabError
 from drivelab.losses import explained_variance, policy_gradient_loss, value_loss
 from drivelab.nets import ActorCritic, limit_log_std
 from drivelab.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
-from drivelab.optim import gradient_step, linear_decay, set_learning_rate
+from drivelab.optim import adam, gradient_step, linear_decay, set_learning_rate
 from drivelab.run import Run
 
 
@@ -68,13 +69,14 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutB
 def make_optimizer(agent: ActorCritic, hp: Params) -> torch.optim.Optimizer:
     if hp.optimizer == "rmsprop":  # A3C's settings (alpha 0.99, eps 1e-5)
         return torch.optim.RMSprop(agent.parameters(), lr=hp.lr, alpha=0.99, eps=1e-5)
-    return torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
+    return adam(agent.parameters(), lr=hp.lr, eps=1e-5)
 
 
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
     collector = RolloutCollector(cfg.env, run, num_steps=hp.num_steps, gamma=hp.gamma, gae_lambda=hp.gae_lambda,
-                                 scale_rewards=hp.normalize_reward)
+                                 scale_rewards=hp.normalize_reward,
+                                 policy_factory=functools.partial(build_policy, cfg) if hp.act_in_workers else None)
     agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
     optimizer = make_optimizer(agent, hp)
     run.start({"policy": agent, **collector.modules()}, {"policy": optimizer}, policy=agent)

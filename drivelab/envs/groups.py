@@ -33,14 +33,14 @@ class EnvGroups:
     """
 
     def __init__(self, cfg: EnvConfig, num_groups: int, *, autoreset_mode: AutoresetMode,
-                 on_restart: Callable[[int], None] | None = None):
+                 on_restart: Callable[[int], None] | None = None, wrapper: Callable[[gym.Env], gym.Env] | None = None):
         bounds = np.linspace(0, cfg.num_envs, num_groups + 1).round().astype(int)
         self.slices = [slice(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:])]
         self.envs: list[VectorEnv] = []
         try:
             for envs in self.slices:
                 self.envs.append(make_vector_env(cfg, envs.stop - envs.start, autoreset_mode=autoreset_mode,
-                                                 on_restart=on_restart))
+                                                 on_restart=on_restart, wrapper=wrapper))
         except BaseException:
             self.close()
             raise

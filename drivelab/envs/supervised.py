@@ -153,6 +153,24 @@ class SupervisedVectorEnv(VectorEnv):
         if self.on_restart is not None:
             self.on_restart(self.restarts)
 
+    def call_or_restart(self, name: str, *args, steps: int = 1, timeout: float | None = None) -> tuple | None:
+        """``call(name, *args)`` in every worker, a call that plays ``steps`` env steps in each
+        (they count towards the restart window): the results, or None when a worker raised, died
+        or took longer than ``timeout``; the workers are then restarted (as for a failed step,
+        within the restart budget) and every env needs a reset."""
+        self._steps += steps
+        self._mid_exchange = True
+        try:
+            self.envs.call_async(name, *args)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                results = self.envs.call_wait(timeout=timeout)
+        except Exception as exc:  # noqa: BLE001 - whatever the simulator raised, or a dead/hung worker
+            self._restart(exc)
+            results = None
+        self._mid_exchange = False
+        return results
+
     def call(self, name: str, *args, **kwargs):
         return self.envs.call(name, *args, **kwargs)
 
