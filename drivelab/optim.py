@@ -20,8 +20,8 @@ def gradient_step(optimizer: torch.optim.Optimizer, loss: torch.Tensor,
 
 def adam(params: Iterable[torch.nn.Parameter], lr: float, eps: float = 1e-8) -> torch.optim.Adam:
     """Adam, as every algorithm builds it. Not ``fused=True``: that kernel made PPO's update 13-15%
-    faster on CPU, but its rounding differs, which moved the seeded demo run (make demo) from
-    route 60% / success 30% to 33% / 0% on its 10 scenarios (2026-11-26)."""
+    faster on CPU, but its rounding differs, and the seeded demo run (make demo) ended at route 33%
+    / success 0% with it against 45% / 10% without (2026-11-26)."""
     return torch.optim.Adam(params, lr=lr, eps=eps)
 
 
