@@ -22,7 +22,6 @@ from drivelab.config import EnvConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
 from drivelab.nets import OffPolicyAgent
-from drivelab.optim import adam
 from drivelab.run import Run
 
 
@@ -68,8 +67,8 @@ class NoisyExplorationParams(OffPolicyParams):
 
 def make_optimizers(agent: OffPolicyAgent, hp: OffPolicyParams) -> dict[str, torch.optim.Optimizer]:
     """Adam for the critics (which also train the image encoder) and for the actor."""
-    return {"critic": adam([*agent.encoder.parameters(), *agent.critic.parameters()], lr=hp.critic_lr),
-            "actor": adam(agent.actor.parameters(), lr=hp.actor_lr)}
+    return {"critic": torch.optim.Adam([*agent.encoder.parameters(), *agent.critic.parameters()], lr=hp.critic_lr),
+            "actor": torch.optim.Adam(agent.actor.parameters(), lr=hp.actor_lr)}
 
 
 class ReplayCollector:

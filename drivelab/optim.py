@@ -1,4 +1,4 @@
-"""Adam, optimiser steps and learning-rate schedules, shared by every algorithm's update."""
+"""Optimiser steps and learning-rate schedules, shared by every algorithm's update."""
 
 from __future__ import annotations
 
@@ -16,13 +16,6 @@ def gradient_step(optimizer: torch.optim.Optimizer, loss: torch.Tensor,
     norm = torch.nn.utils.clip_grad_norm_(clip_params, max_grad_norm) if clip_params is not None else None
     optimizer.step()
     return norm
-
-
-def adam(params: Iterable[torch.nn.Parameter], lr: float, eps: float = 1e-8) -> torch.optim.Adam:
-    """Adam, as every algorithm builds it. Not ``fused=True``: that kernel made PPO's update 13-15%
-    faster on CPU, but its rounding differs, and the seeded demo run (make demo) ended at route 33%
-    / success 0% with it against 45% / 10% without (2026-11-26)."""
-    return torch.optim.Adam(params, lr=lr, eps=eps)
 
 
 def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:

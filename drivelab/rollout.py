@@ -226,8 +226,8 @@ class RolloutCollector:
             buf.next_values[:, env] = rollout.final_values
         # Episode bookkeeping step by step, as if the trainer had stepped the envs.
         for t in range(num_steps):
-            ended = [rollout.episode_info.get(t, {}) for rollout in rollouts]
-            self.run.episodes.step(buf.rewards[t], buf.dones[t], stack_infos(ended) if buf.dones[t].any() else {})
+            info = stack_infos([rollout.episode_info.get(t, {}) for rollout in rollouts]) if buf.dones[t].any() else {}
+            self.run.episodes.step(buf.rewards[t], buf.dones[t], info)
         return np.array([rollout.last_value for rollout in rollouts], np.float32)
 
     def _act(self, agent: ActorCritic, group: int, t: int) -> None:

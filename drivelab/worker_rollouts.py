@@ -74,21 +74,23 @@ class PolicyInWorker(gym.Wrapper):
         obs_buf = np.zeros((num_steps, *self.observation_space.shape), self.observation_space.dtype)
         actions = np.zeros((num_steps,) if discrete else (num_steps, *self.action_space.shape),
                            np.int64 if discrete else np.float32)
-        log_probs, values, rewards, final_values = (np.zeros(num_steps, np.float32) for _ in range(4))
+        # policy outputs stay tensors (row writes, no per-step .item()); numpy once at the end
+        log_probs, values, final_values = (torch.zeros(num_steps) for _ in range(3))
+        rewards = np.zeros(num_steps, np.float32)
         terminated, truncated = np.zeros(num_steps, bool), np.zeros(num_steps, bool)
         episode_info = {}
         for t in range(num_steps):
             obs_buf[t] = self.obs
             dist, value = self.policy.distribution_and_value(torch.as_tensor(self.obs).unsqueeze(0))
             action = sample(dist, self.generator)
-            actions[t], log_probs[t], values[t] = action[0].numpy(), dist.log_prob(action).item(), value.item()
+            actions[t], log_probs[t], values[t] = action[0].numpy(), dist.log_prob(action)[0], value[0]
             obs, rewards[t], terminated[t], truncated[t], info = self.env.step(self.policy.to_env(action)[0])
             if terminated[t] or truncated[t]:
                 if truncated[t] and not terminated[t]:  # a time limit: the state had a future
-                    final_values[t] = self.policy.value(torch.as_tensor(obs).unsqueeze(0)).item()
-                episode_info[t] = {key: float(value) for key, value in info.items() if is_episode_metric(key)}
+                    final_values[t] = self.policy.value(torch.as_tensor(obs).unsqueeze(0))[0]
+                episode_info[t] = {key: float(x) for key, x in info.items() if is_episode_metric(key)}
                 obs, _ = self.env.reset()
             self.obs = obs
         last_value = self.policy.value(torch.as_tensor(self.obs).unsqueeze(0)).item()
-        return WorkerRollout(obs_buf, actions, log_probs, values, rewards, terminated, truncated, final_values,
-                             last_value, episode_info)
+        return WorkerRollout(obs_buf, actions, log_probs.numpy(), values.numpy(), rewards, terminated, truncated,
+                             final_values.numpy(), last_value, episode_info)

@@ -25,7 +25,7 @@ from drivelab.errors import DrivelabError
 from drivelab.losses import explained_variance, policy_gradient_loss, value_loss
 from drivelab.nets import ActorCritic, limit_log_std
 from drivelab.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
-from drivelab.optim import adam, gradient_step, linear_decay, set_learning_rate
+from drivelab.optim import gradient_step, linear_decay, set_learning_rate
 from drivelab.run import Run
 
 
@@ -69,7 +69,7 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutB
 def make_optimizer(agent: ActorCritic, hp: Params) -> torch.optim.Optimizer:
     if hp.optimizer == "rmsprop":  # A3C's settings (alpha 0.99, eps 1e-5)
         return torch.optim.RMSprop(agent.parameters(), lr=hp.lr, alpha=0.99, eps=1e-5)
-    return adam(agent.parameters(), lr=hp.lr, eps=1e-5)
+    return torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
 
 
 def train(cfg: TrainConfig, run: Run) -> None:

@@ -47,7 +47,7 @@ from drivelab.losses import approx_kl, clipped_surrogate_loss
 from drivelab.nets import ActorCritic, PolicyNetParams, limit_log_std
 from drivelab.returns import group_relative_advantages, group_relative_step_advantages, reward_to_go
 from drivelab.rollout import EpisodeStorage
-from drivelab.optim import adam, gradient_step, linear_decay, set_learning_rate
+from drivelab.optim import gradient_step, linear_decay, set_learning_rate
 from drivelab.run import Run
 
 
@@ -231,7 +231,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
     envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED, on_restart=run.note_env_restart)
     obs_space, act_space = envs.single_observation_space, envs.single_action_space
     agent = build_policy(cfg, obs_space, act_space).to(run.device)
-    optimizer = adam(agent.parameters(), lr=hp.lr, eps=1e-5)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
     run.start({"policy": agent}, {"policy": optimizer}, policy=agent)
     storage = EpisodeStorage(2 * -(-hp.batch_steps // envs.num_envs), envs.num_envs, obs_space, act_space)
     try:

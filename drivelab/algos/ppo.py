@@ -39,7 +39,7 @@ from drivelab.errors import DrivelabError
 from drivelab.losses import approx_kl, clipped_surrogate_loss, explained_variance, value_loss
 from drivelab.nets import ActorCritic, limit_log_std
 from drivelab.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
-from drivelab.optim import adam, gradient_step, linear_decay, set_learning_rate
+from drivelab.optim import gradient_step, linear_decay, set_learning_rate
 from drivelab.run import Run
 
 
@@ -137,7 +137,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
                                  scale_rewards=hp.normalize_reward, buffers=2 if hp.overlap_update else 1,
                                  policy_factory=functools.partial(build_policy, cfg) if hp.act_in_workers else None)
     agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
-    optimizer = adam(agent.parameters(), lr=hp.lr, eps=1e-5)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
     run.start({"policy": agent, **collector.modules()}, {"policy": optimizer}, policy=agent)
 
     def finish_iteration(batch: RolloutBatch, stats: dict[str, torch.Tensor], std_log: dict[str, float]) -> None:

@@ -35,7 +35,7 @@ from drivelab.losses import policy_gradient_loss
 from drivelab.nets import Policy, PolicyNetParams, limit_log_std
 from drivelab.returns import normalize, reward_to_go
 from drivelab.rollout import EpisodeStorage
-from drivelab.optim import adam, gradient_step
+from drivelab.optim import gradient_step
 from drivelab.run import Run
 
 
@@ -148,7 +148,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
     envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED, on_restart=run.note_env_restart)
     obs_space, act_space = envs.single_observation_space, envs.single_action_space
     policy = build_policy(cfg, obs_space, act_space).to(run.device)
-    optimizer = adam(policy.parameters(), lr=hp.lr)
+    optimizer = torch.optim.Adam(policy.parameters(), lr=hp.lr)
     run.start({"policy": policy}, {"policy": optimizer}, policy=policy)
     storage = EpisodeStorage(2 * -(-hp.batch_steps // envs.num_envs), envs.num_envs, obs_space, act_space)
     try:

@@ -27,7 +27,7 @@ from drivelab.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.nets import OffPolicyAgent, make_target, polyak_update
 from drivelab.offpolicy import OffPolicyParams, ReplayCollector, make_optimizers
-from drivelab.optim import adam, gradient_step
+from drivelab.optim import gradient_step
 from drivelab.run import Run
 
 
@@ -118,7 +118,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
     # Target networks: a Polyak-averaged copy of the agent (its encoder too, so y does not move
     # with the online critic's features). Only its encoder and critics are used.
     target = make_target(agent)
-    opt = Optimizers(**make_optimizers(agent, hp), alpha=adam([log_alpha], lr=hp.alpha_lr))
+    opt = Optimizers(**make_optimizers(agent, hp), alpha=torch.optim.Adam([log_alpha], lr=hp.alpha_lr))
     if hp.compile:
         agent.compile_networks()
     resumed = run.start({"policy": agent, "target": target, "alpha": torch.nn.ParameterDict({"log_alpha": log_alpha})},
