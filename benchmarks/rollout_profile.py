@@ -29,8 +29,8 @@ import drivelab.algos.ppo as ppo
 from drivelab.api import build_config, train
 from drivelab.config import read_yaml, set_dotted
 from drivelab.envs.groups import EnvGroups
-from drivelab.episodes import EpisodeTracker
-from drivelab.rollout import RolloutCollector
+from drivelab.training.episodes import EpisodeTracker
+from drivelab.training.rollout import RolloutCollector
 from training import apply_overrides, report  # benchmarks/training.py
 
 SECONDS: dict[str, float] = collections.defaultdict(float)

@@ -11,7 +11,7 @@ Importing drivelab registers its Gymnasium ids (the MetaDrive ids the course not
 
 from drivelab.envs.registration import register_envs
 
-__version__ = "0.3.0"
+from drivelab.version import __version__
 
 register_envs()
 

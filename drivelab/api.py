@@ -30,15 +30,15 @@ import torch
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 from drivelab.algos import ALGORITHMS, AlgoSpec
-from drivelab.baselines import baseline
-from drivelab.checkpoint import Checkpoint, checkpoint_step, list_checkpoints, load_checkpoint, restore
+from drivelab.tools.baselines import baseline
+from drivelab.training.checkpoint import Checkpoint, checkpoint_step, list_checkpoints, load_checkpoint, restore
 from drivelab.config import EnvConfig, TrainConfig, parse_config, read_yaml, resolve_config_file, set_dotted
 from drivelab.envs import env_spaces, make_vector_env
 from drivelab.errors import DrivelabError
-from drivelab.evaluation import EvalResult, run_episodes
-from drivelab.export import DeployedPolicy, export_policy, metadata
-from drivelab.run import Run
-from drivelab.video import Recorder
+from drivelab.training.evaluation import EvalResult, play, run_episodes
+from drivelab.tools.export import DeployedPolicy, export_policy, metadata
+from drivelab.training.run import Run
+from drivelab.training.video import Recorder
 
 
 def build_config(data: dict, where: str = "config", algorithms: Mapping[str, AlgoSpec] = ALGORITHMS) -> TrainConfig:
@@ -196,7 +196,7 @@ def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None
     ``env_id`` evaluates on another env (e.g. train on ``MetaDrive-100envs-v0``, evaluate on
     ``MetaDrive-validation-v0``); the training env's kwargs are then dropped, as they may
     redefine that env's scenario range, and ``env_kwargs`` are used instead. A ``recorder``
-    (:class:`drivelab.video.Recorder`) films the episodes, on one env.
+    (:class:`drivelab.training.video.Recorder`) films the episodes, on one env.
     """
     if episodes < 1:
         raise DrivelabError(f"--episodes must be >= 1, got {episodes}")
@@ -214,7 +214,7 @@ def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None
 def evaluate_baseline(name: str, env_cfg: EnvConfig, episodes: int = 10, seed: int = 0,
                       recorder: Recorder | None = None, deterministic: bool = True) -> EvalResult:
     """Evaluate a reference policy (``random``, ``lane-keeping``, ``metadrive-expert``; see
-    :mod:`drivelab.baselines`) with the protocol of :func:`evaluate_checkpoint`: same env config,
+    :mod:`drivelab.tools.baselines`) with the protocol of :func:`evaluate_checkpoint`: same env config,
     episode k reset with seed ``seed + k``, same metrics; ``deterministic=False`` samples the
     expert's actions, as it samples a checkpoint's."""
     if episodes < 1:
@@ -224,26 +224,10 @@ def evaluate_baseline(name: str, env_cfg: EnvConfig, episodes: int = 10, seed: i
     return play(env_cfg, policy, episodes, seed, wrapper=wrapper, recorder=recorder)
 
 
-def play(env_cfg: EnvConfig, policy, episodes: int, seed: int = 0, deterministic: bool = True,
-         wrapper=None, recorder: Recorder | None = None) -> EvalResult:
-    """``episodes`` episodes of ``policy`` on a vector env built from ``env_cfg`` (then closed);
-    with a ``recorder``, the envs render ``rgb_array`` frames for it. Sampled actions
-    (``deterministic=False``) come from torch's generator seeded with ``seed``, forked so that the
-    caller's generator is left as it was: the same seed gives the same episodes."""
-    envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, wrapper=wrapper,
-                           render_mode="rgb_array" if recorder is not None else None)
-    try:
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
-            return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic, recorder=recorder)
-    finally:
-        envs.close()
-
-
 class TrainedPolicy:
     """A trained policy outside training (``drivelab.load``): observations of the run's env (after
     its observation filters) -> the simulator's action, with the run's observation normalisation
-    and action adapters applied (:class:`drivelab.export.DeployedPolicy`).
+    and action adapters applied (:class:`drivelab.tools.export.DeployedPolicy`).
 
     ``act`` takes one observation or a batch (numpy or torch) and returns numpy actions of the
     same batch shape; ``env_config`` builds the env it acts in (``drivelab.make_env``): the run's

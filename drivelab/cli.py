@@ -22,10 +22,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from drivelab import __version__, api
+from drivelab import api
+from drivelab.version import __version__
 from drivelab.algos import ALGORITHMS
-from drivelab.baselines import BASELINES
-from drivelab.checkpoint import checkpoint_step
+from drivelab.tools.baselines import BASELINES
+from drivelab.training.checkpoint import checkpoint_step
 from drivelab.config import EnvConfig, parse_value
 from drivelab.errors import DrivelabError
 
@@ -205,7 +206,7 @@ def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from drivelab.config import read_yaml, resolve_config_file
-    from drivelab.sweep import format_table, parse_grid, parse_seeds, run_sweep
+    from drivelab.tools.sweep import format_table, parse_grid, parse_seeds, run_sweep
 
     path = resolve_config_file(args.config)
     base = read_yaml(path)
@@ -286,14 +287,14 @@ def _local_run(path: str, tracking_uri: str | None, into: str | None = None) -> 
     """``mlflow:RUN_ID`` -> a local run directory fetched from the run's artifacts; other paths as they are."""
     if not path.startswith("mlflow:"):
         return path
-    from drivelab.track import fetch_mlflow_run
+    from drivelab.training.tracking import fetch_mlflow_run
 
     return str(fetch_mlflow_run(path, tracking_uri, Path(into or Path("runs") / f"mlflow-{path.split(':', 1)[1]}")))
 
 
 def _recorder(args: argparse.Namespace):
     """The video recorder that --video / --video-dir ask for, or None."""
-    from drivelab.video import Recorder
+    from drivelab.training.video import Recorder
 
     if args.video and args.video_dir:
         raise DrivelabError("give --video or --video-dir, not both")
@@ -333,7 +334,7 @@ def _env_kwargs(items: list[str]) -> dict[str, Any]:
 
 
 def cmd_reward(args: argparse.Namespace) -> int:
-    from drivelab import reward_tools
+    from drivelab.tools import reward_tools
 
     if args.tool == "plot":
         path = reward_tools.plot_reward(reward_tools.load_reward_config(args.reward), args.out, args.max_cte, args.speed)
@@ -356,7 +357,7 @@ def cmd_reward(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from drivelab.report import write_report
+    from drivelab.tools.report import write_report
 
     if args.episodes < 1:
         raise DrivelabError(f"--episodes must be >= 1, got {args.episodes}")
@@ -365,7 +366,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from drivelab.plots import plot_runs
+    from drivelab.training.plots import plot_runs
 
     if args.window < 1:
         raise DrivelabError(f"--window must be >= 1, got {args.window}")

@@ -10,31 +10,72 @@ from safetensors.torch import load_file
 
 from drivelab.algos import ALGORITHMS
 from drivelab.api import build_config, train
-from drivelab.checkpoint import list_checkpoints, resolve_checkpoint
+from drivelab.training.checkpoint import list_checkpoints, resolve_checkpoint
 
 PACKAGE = Path(__file__).resolve().parent.parent / "drivelab"
 
+# The layers, bottom first. A module may import its own layer and the layers below it, never one
+# above; the faces (the package's lazy API, the CLI) sit on top.
+LAYERS = (
+    ("drivelab.errors", "drivelab.version"),
+    ("drivelab.envs",),          # environments, wrappers, vectorisation, the env config
+    ("drivelab.config",),        # the whole run's config
+    ("drivelab.training",),      # what every algorithm uses: run services, collectors, nets, losses
+    ("drivelab.algos",),         # one file per algorithm, and the registry
+    ("drivelab.tools",),         # around runs: loading policies, baselines, export, report, sweep
+    ("drivelab.api",),           # the Python face
+    ("drivelab.cli", "drivelab.__main__", "drivelab"),
+)
 
-def _module_name(path: Path) -> str:
-    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+
+def _layer(module: str) -> int:
+    for level, prefixes in enumerate(LAYERS):
+        if module in prefixes or any(module.startswith(p + ".") for p in prefixes if p != "drivelab"):
+            return level
+    raise AssertionError(f"{module} belongs to no layer: add its folder to LAYERS")
+
+
+def _module_name(path: Path, package: Path) -> str:
+    parts = path.relative_to(package.parent).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _module_level_imports(path: Path, modules: set[str]) -> set[str]:
-    """drivelab modules that ``path`` imports at module level (not inside functions, nor under
-    ``if TYPE_CHECKING``)."""
+def _under_type_checking(node: ast.AST, parents: dict[ast.AST, ast.AST]) -> bool:
+    while node in parents:
+        node = parents[node]
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            return True
+    return False
+
+
+def _imports(path: Path, modules: set[str], package: Path = PACKAGE) -> set[str]:
+    """Every drivelab module that ``path`` imports, at module level or inside a function (imports
+    under ``if TYPE_CHECKING`` never run and are left out)."""
+    tree = ast.parse(path.read_text())
+    parents = {child: node for node in ast.walk(tree) for child in ast.iter_child_nodes(node)}
+    name = _module_name(path, package)
+    home = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
-    for node in ast.parse(path.read_text()).body:
+    for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             names = [alias.name for alias in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative: resolve against this module's package
+                parts = home.split(".")
+                base = ".".join([*parts[: len(parts) - node.level + 1], *([base] if base else [])])
             # `from drivelab.algos import ppo` imports the submodule drivelab.algos.ppo
-            names = [f"{node.module}.{alias.name}" if f"{node.module}.{alias.name}" in modules else node.module
-                     for alias in node.names]
+            names = [f"{base}.{alias.name}" if f"{base}.{alias.name}" in modules else base for alias in node.names]
         else:
             continue
-        found.update(name for name in names if name in modules)
+        if not _under_type_checking(node, parents):
+            found.update(n for n in names if n in modules)
     return found
+
+
+def _graph() -> dict[str, set[str]]:
+    files = {_module_name(p, PACKAGE): p for p in PACKAGE.rglob("*.py")}
+    return {name: _imports(path, set(files)) - {name} for name, path in files.items()}
 
 
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -69,18 +110,34 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return out
 
 
-def test_no_import_cycle_among_drivelab_modules():
-    files = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
-    graph = {name: _module_level_imports(path, set(files)) - {name} for name, path in files.items()}
-    assert len(graph) > 30 and graph["drivelab.api"] >= {"drivelab.algos", "drivelab.run"}
-    assert _cycles(graph) == []
-    # the registry is handed down: nothing below the algorithms imports it
-    importers = sorted(name for name, deps in graph.items() if "drivelab.algos" in deps)
-    assert importers == ["drivelab.api", "drivelab.cli"], importers
-
-
 def test_the_cycle_finder_finds_a_cycle():
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_no_import_cycle_among_drivelab_modules():
+    graph = _graph()
+    assert len(graph) > 30 and graph["drivelab.api"] >= {"drivelab.algos", "drivelab.training.run"}
+    assert _cycles(graph) == []
+
+
+def test_imports_run_only_down_the_layers():
+    upward = sorted(f"{module} -> {dep}" for module, deps in _graph().items() for dep in deps
+                    if _layer(dep) > _layer(module))
+    assert upward == [], upward
+
+
+def test_the_package_root_holds_only_the_faces_and_the_base():
+    root = sorted(p.stem for p in PACKAGE.glob("*.py"))
+    assert root == ["__init__", "__main__", "api", "cli", "config", "errors", "version"], root
+
+
+def test_the_import_walker_sees_function_level_and_relative_imports(tmp_path):
+    source = tmp_path / "drivelab" / "tools" / "x.py"
+    source.parent.mkdir(parents=True)
+    source.write_text("import os\n\ndef f():\n    from drivelab.api import train\n    from ..config import x\n"
+                      "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from drivelab.cli import main\n")
+    found = _imports(source, {"drivelab.api", "drivelab.config", "drivelab.cli"}, package=tmp_path / "drivelab")
+    assert found == {"drivelab.api", "drivelab.config"}
 
 
 # Small budgets on CartPole (on-policy) and Pendulum (off-policy); eval on for two of them, so

@@ -1,4 +1,4 @@
-"""Reference policies (drivelab.baselines): the MetaDrive expert and the lane keeper run inside
+"""Reference policies (drivelab.tools.baselines): the MetaDrive expert and the lane keeper run inside
 spawned env processes, exactly like evaluation of a checkpoint; errors are one-line DrivelabErrors."""
 
 from pathlib import Path
@@ -10,7 +10,7 @@ import torch
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 
 import drivelab  # noqa: F401  (registers the ids)
-from drivelab.baselines import (BASELINES, ExpertActionObservation, LaneKeepingObservation, ObservationIsAction,
+from drivelab.tools.baselines import (BASELINES, ExpertActionObservation, LaneKeepingObservation, ObservationIsAction,
                                 RandomPolicy, baseline)
 from drivelab.envs.wrappers import DiscreteActionGrid
 from drivelab.errors import DrivelabError

@@ -3,7 +3,7 @@ import json
 import pytest
 import torch
 
-from drivelab.checkpoint import list_checkpoints, load_checkpoint, resolve_checkpoint, restore, save_checkpoint
+from drivelab.training.checkpoint import list_checkpoints, load_checkpoint, resolve_checkpoint, restore, save_checkpoint
 from drivelab.errors import DrivelabError
 
 

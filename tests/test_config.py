@@ -6,7 +6,7 @@ from drivelab.cli import parse_overrides, parse_value
 from drivelab.api import build_config
 from drivelab.config import TrainConfig, config_to_dict, read_yaml, save_config
 from drivelab.errors import DrivelabError
-from drivelab.sweep import plan, trial_config
+from drivelab.tools.sweep import plan, trial_config
 
 
 def test_defaults_and_algo_section():

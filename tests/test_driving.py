@@ -14,7 +14,7 @@ from drivelab.envs import make_env
 from drivelab.envs.filters import apply_filters, binarize, crop, resize, sobel
 from drivelab.envs.rewards import cte_reward, idle_penalty, lane_reward, progress_reward, score, validate_reward_config
 from drivelab.envs.wrappers import CruiseControl, DifferentialDrive, FixedThrottle, wheel_velocities
-from drivelab.episodes import episode_info
+from drivelab.training.episodes import episode_info
 from drivelab.errors import DrivelabError
 
 
@@ -202,7 +202,7 @@ def _check_top_down_task():
     try:
         obs, _ = env.reset(seed=0)
         assert env.observation_space.shape == (84, 84, 5) and obs.dtype == np.uint8
-        from drivelab.nets import CNNEncoder
+        from drivelab.training.nets import CNNEncoder
 
         assert CNNEncoder(env.observation_space).out_dim == 512
     finally:
@@ -219,7 +219,7 @@ def test_driving_tasks_train_with_each_family(algo, env, params, tmp_path):
     from safetensors.torch import load_file
 
     from drivelab.api import build_config, train
-    from drivelab.checkpoint import list_checkpoints
+    from drivelab.training.checkpoint import list_checkpoints
 
     cfg = build_config({"algo": algo, "steps": 256, "seed": 0, "run_dir": str(tmp_path / algo),
                         "env": {"num_envs": 2, **env}, algo: params})
@@ -289,7 +289,7 @@ def test_ppo_learns_lane_following_better_than_random(tmp_path):
     from drivelab.api import build_config, evaluate_checkpoint, train
     from drivelab.config import read_yaml
     from drivelab.envs import make_vector_env
-    from drivelab.evaluation import run_episodes
+    from drivelab.training.evaluation import run_episodes
 
     cfg = build_config({**read_yaml("configs/ppo_lanefollow.yaml"), "steps": 20000, "seed": 0, "run_dir": str(tmp_path / "lf")})
     train(cfg, progress=False)

@@ -9,8 +9,8 @@ import torch
 
 import drivelab
 from drivelab.config import EnvConfig
-from drivelab.export import DeployedPolicy
-from drivelab.nets import ActorCritic
+from drivelab.tools.export import DeployedPolicy
+from drivelab.training.nets import ActorCritic
 
 
 def test_notebook_style_train_load_act_evaluate(tmp_path):

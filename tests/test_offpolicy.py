@@ -11,12 +11,12 @@ from safetensors.torch import load_file
 
 from drivelab.algos.sac import soft_td_target
 from drivelab.algos.td3 import td_target
-from drivelab.checkpoint import list_checkpoints
+from drivelab.training.checkpoint import list_checkpoints
 from drivelab.api import build_config
 from drivelab.config import read_yaml
 from drivelab.errors import DrivelabError
 from drivelab.api import evaluate_checkpoint
-from drivelab.nets import EnsembleLinear, OffPolicyAgent, polyak_update, squashed_gaussian_log_prob
+from drivelab.training.nets import EnsembleLinear, OffPolicyAgent, polyak_update, squashed_gaussian_log_prob
 from drivelab.api import train
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"

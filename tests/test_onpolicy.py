@@ -11,15 +11,15 @@ from drivelab.algos import grpo
 from drivelab.api import build_config
 from drivelab.envs import env_spaces, make_vector_env
 from drivelab.errors import DrivelabError
-from drivelab.episodes import EpisodeTracker
+from drivelab.training.episodes import EpisodeTracker
 from drivelab.api import evaluate_checkpoint
-from drivelab.losses import approx_kl, clipped_surrogate_loss, value_loss
-from drivelab.nets import ActorCritic
-from drivelab.normalize import RunningMeanStd
-from drivelab.returns import gae, group_relative_advantages, group_relative_step_advantages
-from drivelab.rollout import EpisodeStorage, RolloutCollector
+from drivelab.training.losses import approx_kl, clipped_surrogate_loss, value_loss
+from drivelab.training.nets import ActorCritic
+from drivelab.training.normalize import RunningMeanStd
+from drivelab.training.returns import gae, group_relative_advantages, group_relative_step_advantages
+from drivelab.training.rollout import EpisodeStorage, RolloutCollector
 from drivelab.api import train
-from drivelab.run import Run
+from drivelab.training.run import Run
 
 
 def test_gae_by_hand():
@@ -276,7 +276,7 @@ def test_overlapped_ppo_trains_each_rollout_against_the_weights_that_collected_i
 def test_overlapped_ppo_interrupted_while_collecting_saves_whole_updates(tmp_path, monkeypatch):
     """Ctrl-C while the next rollout is collected: the update in flight ends and is counted before
     the checkpoint, whose step, optimiser and observation statistics then agree."""
-    from drivelab.checkpoint import list_checkpoints, load_checkpoint
+    from drivelab.training.checkpoint import list_checkpoints, load_checkpoint
 
     collect, calls = RolloutCollector.collect, []
 

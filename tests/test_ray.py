@@ -171,7 +171,7 @@ def test_merge_infos_keeps_gymnasiums_layout():
 
 
 def test_sweep_plan_grid_and_seeds():
-    from drivelab.sweep import parse_grid, parse_seeds, plan
+    from drivelab.tools.sweep import parse_grid, parse_seeds, plan
 
     grid = parse_grid(["ppo.lr=1e-4,3e-4", "env.kwargs.num_scenarios=1,10"])
     assert grid == {"ppo.lr": [1e-4, 3e-4], "env.kwargs.num_scenarios": [1, 10]}

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import drivelab
-from drivelab.plots import mean_and_band, rolling_mean
+from drivelab.training.plots import mean_and_band, rolling_mean
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +64,7 @@ def test_plot_draws_the_default_panels_and_groups_seeds(cartpole_run, run_cli, t
     for seed in (1, 2):
         drivelab.train("ppo", "CartPole-v1", steps=1024, seed=seed, num_envs=2, run_dir=tmp_path / f"s{seed}",
                        progress=False, ppo={"num_steps": 256})
-    from drivelab.plots import group_runs
+    from drivelab.training.plots import group_runs
 
     groups = group_runs([tmp_path / "s1", tmp_path / "s2", cartpole_run])
     assert sorted(len(members) for members in groups.values()) == [1, 2]

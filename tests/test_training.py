@@ -7,7 +7,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from drivelab.checkpoint import resolve_checkpoint
+from drivelab.training.checkpoint import resolve_checkpoint
 from drivelab.api import build_config
 from drivelab.api import evaluate_checkpoint
 from drivelab.api import train
@@ -133,7 +133,7 @@ def test_max_minutes_stops_training_with_a_final_checkpoint(tmp_path):
 
 
 def test_updates_run_with_update_threads_and_collection_goes_back_to_torch_threads():
-    from drivelab.run import Timing
+    from drivelab.training.run import Timing
 
     outside = torch.get_num_threads()
     timing = Timing(update_threads=outside + 1)

@@ -14,9 +14,9 @@ import torch
 from torch.distributions import Categorical
 
 from drivelab.algos import a2c, ddpg, grpo, ppo, reinforce, sac, td3
-from drivelab.buffers import ReplayBatch
-from drivelab.nets import ActorCritic, OffPolicyAgent, Policy, limit_log_std, make_target
-from drivelab.rollout import RolloutBatch
+from drivelab.training.buffers import ReplayBatch
+from drivelab.training.nets import ActorCritic, OffPolicyAgent, Policy, limit_log_std, make_target
+from drivelab.training.rollout import RolloutBatch
 
 OBS = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
 DISCRETE = gym.spaces.Discrete(2)
@@ -231,7 +231,7 @@ def test_td3_update_smooths_the_target_action_and_delays_the_actor():
 
 
 def test_td3_pre_tanh_penalty_by_hand_and_on_a_saturated_actor():
-    from drivelab.losses import deterministic_actor_loss
+    from drivelab.training.losses import deterministic_actor_loss
 
     # The actor step with the penalty, by hand: -Q_1(s, tanh(u)) + lambda * mean(u^2), after the critic's step.
     agent, target = _agent_and_target(stochastic=False, critics=2)

@@ -8,7 +8,7 @@ A2C), and takes ONE gradient step on
 
 No clipping, no epochs: every sample is used once, by the policy that collected it (which is
 what makes the plain policy gradient unbiased). The collector is PPO's
-(:class:`drivelab.rollout.RolloutCollector`); the iterations are tiny (T * N = 40 steps by
+(:class:`drivelab.training.rollout.RolloutCollector`); the iterations are tiny (T * N = 40 steps by
 default), so metrics are averaged over the iterations between two logs.
 """
 
@@ -22,17 +22,17 @@ import torch
 
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
-from drivelab.losses import explained_variance, policy_gradient_loss, value_loss
-from drivelab.nets import ActorCritic, limit_log_std
-from drivelab.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
-from drivelab.optim import gradient_step, linear_decay, set_learning_rate
-from drivelab.run import Run
+from drivelab.training.losses import explained_variance, policy_gradient_loss, value_loss
+from drivelab.training.nets import ActorCritic, limit_log_std
+from drivelab.training.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
+from drivelab.training.optim import gradient_step, linear_decay, set_learning_rate
+from drivelab.training.run import Run
 
 
 @dataclass
 class Params(ActorCriticParams):
     """A2C's defaults (A3C's paper and SB3); the shared fields are in
-    :class:`drivelab.rollout.ActorCriticParams`."""
+    :class:`drivelab.training.rollout.ActorCriticParams`."""
     lr: float = 7e-4
     anneal_lr: bool = False
     num_steps: int = 5            # n in n-step returns

@@ -15,13 +15,13 @@ from typing import NamedTuple
 import gymnasium as gym
 import torch
 
-from drivelab.buffers import ReplayBatch
+from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
-from drivelab.losses import deterministic_actor_loss, saturated_share
-from drivelab.nets import OffPolicyAgent, make_target, polyak_update
-from drivelab.offpolicy import NoisyExploration, NoisyExplorationParams, ReplayCollector, make_optimizers
-from drivelab.optim import gradient_step
-from drivelab.run import Run
+from drivelab.training.losses import deterministic_actor_loss, saturated_share
+from drivelab.training.nets import OffPolicyAgent, make_target, polyak_update
+from drivelab.training.offpolicy import NoisyExploration, NoisyExplorationParams, ReplayCollector, make_optimizers
+from drivelab.training.optim import gradient_step
+from drivelab.training.run import Run
 
 
 @dataclass

@@ -16,12 +16,12 @@ rollout with a copy of the weights from before it, so the env workers no longer 
 update (on-policy PPO leaves them idle for 10-15% of the wall time on MetaDrive). That rollout is
 then one update old when it is trained on: the loss clips the ratio around the policy at the start
 of its update and weights each sample by pi_prox / mu, the decoupled objective of Hilton et al.
-2021 (see :func:`drivelab.losses.clipped_surrogate_loss`). Meant for CPU training beside env
+2021 (see :func:`drivelab.training.losses.clipped_surrogate_loss`). Meant for CPU training beside env
 subprocesses; on CUDA both threads share the default stream, which hides less of the update.
 
-Shared parts used here: :class:`drivelab.rollout.RolloutCollector` (env stepping, episode ends,
-GAE from :func:`drivelab.returns.gae`), the losses in :mod:`drivelab.losses`, and
-:class:`drivelab.run.Run` (logging, evaluation, checkpoints).
+Shared parts used here: :class:`drivelab.training.rollout.RolloutCollector` (env stepping, episode ends,
+GAE from :func:`drivelab.training.returns.gae`), the losses in :mod:`drivelab.training.losses`, and
+:class:`drivelab.training.run.Run` (logging, evaluation, checkpoints).
 """
 
 from __future__ import annotations
@@ -36,17 +36,17 @@ import torch
 
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
-from drivelab.losses import approx_kl, clipped_surrogate_loss, explained_variance, value_loss
-from drivelab.nets import ActorCritic, limit_log_std
-from drivelab.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
-from drivelab.optim import gradient_step, linear_decay, set_learning_rate
-from drivelab.run import Run
+from drivelab.training.losses import approx_kl, clipped_surrogate_loss, explained_variance, value_loss
+from drivelab.training.nets import ActorCritic, limit_log_std
+from drivelab.training.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
+from drivelab.training.optim import gradient_step, linear_decay, set_learning_rate
+from drivelab.training.run import Run
 
 
 @dataclass
 class Params(ActorCriticParams):
     """PPO's own hyperparameters; lr, num_steps, gamma, gae_lambda, ent_coef, ... are in
-    :class:`drivelab.rollout.ActorCriticParams`."""
+    :class:`drivelab.training.rollout.ActorCriticParams`."""
     update_epochs: int = 4            # passes over each rollout
     num_minibatches: int = 4          # minibatches per pass (minibatch = T * N / this)
     clip_coef: float = 0.2            # PPO's epsilon: the ratio is clipped to [1 - eps, 1 + eps]

@@ -31,12 +31,12 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from drivelab.config import TrainConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
-from drivelab.losses import policy_gradient_loss
-from drivelab.nets import Policy, PolicyNetParams, limit_log_std
-from drivelab.returns import normalize, reward_to_go
-from drivelab.rollout import EpisodeStorage
-from drivelab.optim import gradient_step
-from drivelab.run import Run
+from drivelab.training.losses import policy_gradient_loss
+from drivelab.training.nets import Policy, PolicyNetParams, limit_log_std
+from drivelab.training.returns import normalize, reward_to_go
+from drivelab.training.rollout import EpisodeStorage
+from drivelab.training.optim import gradient_step
+from drivelab.training.run import Run
 
 
 @dataclass

@@ -3,16 +3,16 @@
 Maximises return plus entropy, E[sum_t r_t + alpha * H(pi(.|s_t))], with
 
 * a squashed Gaussian actor a = tanh(u), whose log-probability carries the tanh
-  change-of-variables correction (:func:`drivelab.nets.squashed_gaussian_log_prob`);
+  change-of-variables correction (:func:`drivelab.training.nets.squashed_gaussian_log_prob`);
 * twin critics and a clipped double-Q target (Fujimoto et al. 2018), computed in one batched pass:
       y = r + gamma * (1 - terminated) * (min_e Q'_e(s', a') - alpha * log pi(a'|s')),  a' ~ pi(.|s');
 * the actor loss E[alpha * log pi(a|s) - min_e Q_e(s, a)] with a reparameterised a ~ pi(.|s);
 * alpha tuned so the policy's entropy tracks a target (-|A| by default):
       L(alpha) = -E[log alpha * (log pi(a|s) + target_entropy)].
 
-Shared parts used here: :class:`drivelab.offpolicy.ReplayCollector` (env stepping into the
-replay buffer, update-to-data ratio), the networks in :mod:`drivelab.nets`, and
-:class:`drivelab.run.Run` (logging, evaluation, checkpoints).
+Shared parts used here: :class:`drivelab.training.offpolicy.ReplayCollector` (env stepping into the
+replay buffer, update-to-data ratio), the networks in :mod:`drivelab.training.nets`, and
+:class:`drivelab.training.run.Run` (logging, evaluation, checkpoints).
 """
 
 from __future__ import annotations
@@ -23,12 +23,12 @@ from typing import NamedTuple
 import gymnasium as gym
 import torch
 
-from drivelab.buffers import ReplayBatch
+from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
-from drivelab.nets import OffPolicyAgent, make_target, polyak_update
-from drivelab.offpolicy import OffPolicyParams, ReplayCollector, make_optimizers
-from drivelab.optim import gradient_step
-from drivelab.run import Run
+from drivelab.training.nets import OffPolicyAgent, make_target, polyak_update
+from drivelab.training.offpolicy import OffPolicyParams, ReplayCollector, make_optimizers
+from drivelab.training.optim import gradient_step
+from drivelab.training.run import Run
 
 
 @dataclass

@@ -8,8 +8,8 @@ DDPG plus three fixes for its overestimation and instability:
 3. delayed policy updates: the actor and the targets move once every ``policy_delay`` critic updates.
 
 Exploration adds Gaussian (or Ornstein-Uhlenbeck) noise to mu(s), with a linear schedule
-(:class:`drivelab.offpolicy.NoisyExploration`). The replay collector, networks and run services
-are the shared parts (:mod:`drivelab.offpolicy`, :mod:`drivelab.nets`, :mod:`drivelab.run`).
+(:class:`drivelab.training.offpolicy.NoisyExploration`). The replay collector, networks and run services
+are the shared parts (:mod:`drivelab.training.offpolicy`, :mod:`drivelab.training.nets`, :mod:`drivelab.training.run`).
 """
 
 from __future__ import annotations
@@ -20,14 +20,14 @@ from typing import NamedTuple
 import gymnasium as gym
 import torch
 
-from drivelab.buffers import ReplayBatch
+from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
-from drivelab.losses import deterministic_actor_loss, saturated_share
-from drivelab.nets import OffPolicyAgent, make_target, polyak_update
-from drivelab.offpolicy import NoisyExploration, NoisyExplorationParams, ReplayCollector, make_optimizers
-from drivelab.optim import gradient_step
-from drivelab.run import Run
+from drivelab.training.losses import deterministic_actor_loss, saturated_share
+from drivelab.training.nets import OffPolicyAgent, make_target, polyak_update
+from drivelab.training.offpolicy import NoisyExploration, NoisyExplorationParams, ReplayCollector, make_optimizers
+from drivelab.training.optim import gradient_step
+from drivelab.training.run import Run
 
 
 @dataclass

@@ -13,11 +13,11 @@ import multiprocessing
 import os
 import signal
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import gymnasium as gym
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 
+from drivelab.envs.config import EnvConfig
 from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs
 from drivelab.envs.filters import apply_filters
 from drivelab.envs.rewards import RewardShaping
@@ -25,10 +25,7 @@ from drivelab.envs.supervised import SupervisedVectorEnv
 from drivelab.envs.wrappers import DifferentialDrive, DiscreteActionGrid, FixedThrottle, parse_grid
 from drivelab.errors import DrivelabError
 
-if TYPE_CHECKING:
-    from drivelab.config import EnvConfig
-
-__all__ = ["make_env", "make_vector_env", "env_spaces", "DiscreteActionGrid", "FixedThrottle", "DifferentialDrive",
+__all__ = ["EnvConfig", "make_env", "make_vector_env", "env_spaces", "DiscreteActionGrid", "FixedThrottle", "DifferentialDrive",
            "metadrive_ids", "needs_own_process"]
 
 
@@ -50,7 +47,7 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
     ``{"num_scenarios": 10, "traffic_density": 0.2}``). A task that shapes its reward itself
     (lane following, Duckietown) has its terms replaced by ``cfg.reward``: one route per knob.
     ``render_mode="rgb_array"`` is for videos; ``wrapper`` goes on last (e.g. a baseline's, see
-    :mod:`drivelab.baselines`; a module-level class, so vector envs can pickle it).
+    :mod:`drivelab.tools.baselines`; a module-level class, so vector envs can pickle it).
     """
     _check_id(cfg.id)
     if multiprocessing.parent_process() is not None:

@@ -319,8 +319,8 @@ class EvalWorker:
         import tempfile
 
         from drivelab.envs import make_vector_env
-        from drivelab.evaluation import run_episodes
-        from drivelab.video import Recorder
+        from drivelab.training.evaluation import run_episodes
+        from drivelab.training.video import Recorder
 
         policy.eval()
         summary = run_episodes(self.envs, policy, episodes, seed=seed).summary()

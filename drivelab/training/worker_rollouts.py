@@ -11,7 +11,7 @@ Here each env worker holds the policy's network. Once per rollout the trainer se
 weights (``collect``); the worker plays T steps on its own (sampling from its own generator,
 seeded by the env's reset seed, so a rollout does not depend on timing) and returns what the
 rollout buffer needs, including the values for GAE. Episodes end as in ``AutoresetMode.SAME_STEP``
-(:mod:`drivelab.rollout`): a terminated step bootstraps nothing, a truncated one from
+(:mod:`drivelab.training.rollout`): a terminated step bootstraps nothing, a truncated one from
 V(final observation), computed in the worker with the same weights.
 """
 
@@ -24,8 +24,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from drivelab.episodes import is_episode_metric
-from drivelab.nets import ActorCritic, sample
+from drivelab.training.episodes import is_episode_metric
+from drivelab.training.nets import ActorCritic, sample
 
 
 class WorkerRollout(NamedTuple):

@@ -72,7 +72,7 @@ def space_json(space: gym.Space) -> dict[str, Any]:
 
 def metadata(cfg: TrainConfig, step: int, obs_space: gym.Space, action_space: gym.Space) -> dict[str, Any]:
     """What a user of the exported files must know: spaces, env-side processing, provenance."""
-    from drivelab import __version__
+    from drivelab.version import __version__
 
     return {
         "drivelab_version": __version__, "algo": cfg.algo, "env_id": cfg.env.id, "step": step,

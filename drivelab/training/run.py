@@ -51,14 +51,14 @@ import torch
 from gymnasium.vector import AutoresetMode
 from tqdm.auto import tqdm
 
-from drivelab.checkpoint import Checkpoint, restore, save_checkpoint
+from drivelab.training.checkpoint import Checkpoint, restore, save_checkpoint
 from drivelab.config import EnvConfig, TrainConfig, config_to_dict, save_config
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
-from drivelab.episodes import EpisodeTracker
-from drivelab.evaluation import run_episodes
-from drivelab.track import Tracker
-from drivelab.video import Recorder
+from drivelab.training.episodes import EpisodeTracker
+from drivelab.training.evaluation import run_episodes
+from drivelab.training.tracking import Tracker
+from drivelab.training.video import Recorder
 
 # (tensors, JSON-able state) that a trainer saves beside its networks, e.g. a replay buffer.
 ExtraState = Callable[[], tuple[dict[str, torch.Tensor], dict[str, Any]]]

@@ -26,7 +26,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from drivelab import __version__
+from drivelab.version import __version__
 from drivelab.errors import DrivelabError
 
 _STEP_DIR = re.compile(r"^step_(\d{12})$")

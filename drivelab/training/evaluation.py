@@ -11,10 +11,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from gymnasium.vector import VectorEnv
+from gymnasium.vector import AutoresetMode, VectorEnv
 
-from drivelab.episodes import EpisodeTracker
+from drivelab.envs import EnvConfig, make_vector_env
 from drivelab.errors import DrivelabError
+from drivelab.training.episodes import EpisodeTracker
 
 
 @dataclass
@@ -39,7 +40,7 @@ def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, determin
                  device: torch.device | str = "cpu", recorder=None) -> EvalResult:
     """Play exactly ``episodes`` episodes (episode k with seed ``seed + k``) on ``envs``, which must
     use ``AutoresetMode.DISABLED``. ``policy`` has ``act(obs, deterministic)`` and ``to_env(action)``.
-    ``recorder`` (:class:`drivelab.video.Recorder`) films env 0's episodes: it is handed the
+    ``recorder`` (:class:`drivelab.training.video.Recorder`) films env 0's episodes: it is handed the
     envs after every reset and step."""
     if episodes < 1:
         raise DrivelabError(f"the number of evaluation episodes must be >= 1, got {episodes}")
@@ -82,3 +83,19 @@ def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, determin
     if recorder is not None:
         recorder.close()
     return EvalResult(returns, lengths, metrics)
+
+
+def play(env_cfg: EnvConfig, policy, episodes: int, seed: int = 0, deterministic: bool = True,
+         wrapper=None, recorder=None) -> EvalResult:
+    """``episodes`` episodes of ``policy`` on a vector env built from ``env_cfg`` (then closed);
+    with a ``recorder``, the envs render ``rgb_array`` frames for it. Sampled actions
+    (``deterministic=False``) come from torch's generator seeded with ``seed``, forked so that the
+    caller's generator is left as it was: the same seed gives the same episodes."""
+    envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, wrapper=wrapper,
+                           render_mode="rgb_array" if recorder is not None else None)
+    try:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic, recorder=recorder)
+    finally:
+        envs.close()

@@ -17,11 +17,11 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 
-from drivelab import __version__
-from drivelab.checkpoint import list_checkpoints
+from drivelab.version import __version__
+from drivelab.training.checkpoint import list_checkpoints
 from drivelab.config import TrackConfig, config_to_dict
 from drivelab.errors import DrivelabError
-from drivelab.plots import plot_runs
+from drivelab.training.plots import plot_runs
 
 
 def default_mlflow_uri(runs_root: Path) -> str:

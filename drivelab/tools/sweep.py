@@ -98,7 +98,7 @@ def _run_trial(config: dict) -> None:
     from ray import tune
 
     from drivelab import api
-    from drivelab.checkpoint import list_checkpoints
+    from drivelab.training.checkpoint import list_checkpoints
 
     data, run_dir = config["data"], Path(config["data"]["run_dir"])
     cfg = api.build_config(data, where=f"sweep trial {run_dir.name}")
@@ -147,7 +147,7 @@ def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Pat
 def summarise(out: Path, trials: list[Trial]) -> dict:
     """{"settings": [{setting, runs, metrics: {name: [mean, ci95, n]}}]} from the runs' final metrics."""
     from drivelab.api import last_metrics
-    from drivelab.plots import mean_and_ci95
+    from drivelab.training.plots import mean_and_ci95
 
     groups: dict[str, list[Trial]] = {}
     for t in trials:
@@ -193,7 +193,7 @@ def plot_sweep(out: Path, trials: list[Trial], summary: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from drivelab.plots import plot_runs
+    from drivelab.training.plots import plot_runs
 
     runs = [out / t.name for t in trials if (out / t.name / "metrics.csv").is_file()]
     if runs:

@@ -6,7 +6,7 @@ same env (drivelab's MetaDrive adapter, e.g. ``MetaDrive-validation-v0``), with 
 ``route_completion``, ``crash``, ``out_of_road`` from the last step's ``info``):
 
 * ``random``: actions drawn uniformly from the action space by a seeded generator. The floor.
-* ``lane-keeping``: :func:`drivelab.reward_tools.lane_keeping_controller`, a proportional
+* ``lane-keeping``: :func:`drivelab.tools.reward_tools.lane_keeping_controller`, a proportional
   controller that steers against the cross-track and heading errors that the MetaDrive adapter
   reports in ``info`` (``cte``, ``heading_error``) and holds the throttle at 0.5. It sees the lane
   geometry directly (privileged information a learned policy does not get) and ignores traffic.
@@ -47,7 +47,7 @@ evaluation loop is the one trained policies use, unchanged::
 
     wrapper, policy = baseline("metadrive-expert", action_space)
     envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, wrapper=wrapper)
-    result = drivelab.evaluation.run_episodes(envs, policy, episodes=30)
+    result = drivelab.training.evaluation.run_episodes(envs, policy, episodes=30)
 
 (:func:`drivelab.api.evaluate_baseline` does this; ``drivelab eval --policy metadrive-expert``.)
 """
@@ -134,7 +134,7 @@ class ExpertActionObservation(gym.Wrapper):
 class LaneKeepingObservation(gym.Wrapper):
     """Replaces the observation by the lane-keeping controller's action.
 
-    The controller (:func:`drivelab.reward_tools.lane_keeping_controller`) reads ``cte`` and
+    The controller (:func:`drivelab.tools.reward_tools.lane_keeping_controller`) reads ``cte`` and
     ``heading_error`` from the ``info`` of ``reset`` and ``step``. Observation: float32 (2,)
     [steering, throttle]; the observation space is the env's action Box. Works on any env whose
     ``info`` carries the lane geometry (drivelab's MetaDrive adapter does) and whose action is a
@@ -147,7 +147,7 @@ class LaneKeepingObservation(gym.Wrapper):
         self.observation_space = _action_box(env.action_space)
 
     def _controller_action(self, info: dict) -> np.ndarray:
-        from drivelab.reward_tools import lane_keeping_controller
+        from drivelab.tools.reward_tools import lane_keeping_controller
 
         if "cte" not in info or "heading_error" not in info:
             raise DrivelabError(f"the lane-keeping baseline needs 'cte' and 'heading_error' in info; "

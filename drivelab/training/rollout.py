@@ -27,11 +27,11 @@ from gymnasium.vector import AutoresetMode
 from drivelab.config import EnvConfig
 from drivelab.envs.groups import EnvGroups
 from drivelab.errors import DrivelabError
-from drivelab.nets import ActorCritic, PolicyNetParams, sample
-from drivelab.normalize import RunningMeanStd
-from drivelab.returns import gae
-from drivelab.run import Run
-from drivelab.worker_rollouts import PolicyInWorker
+from drivelab.training.nets import ActorCritic, PolicyNetParams, sample
+from drivelab.training.normalize import RunningMeanStd
+from drivelab.training.returns import gae
+from drivelab.training.run import Run
+from drivelab.training.worker_rollouts import PolicyInWorker
 
 
 @dataclass
@@ -48,7 +48,7 @@ class ActorCriticParams(PolicyNetParams):
     max_grad_norm: float = 0.5        # clip the global gradient norm to this
     normalize_obs: bool = False   # running observation normalisation (saved with the weights)
     normalize_reward: bool = False  # divide rewards by the running std of the discounted return
-    act_in_workers: bool = False  # each env subprocess plays the rollout with its own copy of the policy (see drivelab/worker_rollouts.py)
+    act_in_workers: bool = False  # each env subprocess plays the rollout with its own copy of the policy (see drivelab/training/worker_rollouts.py)
 
     def validate(self) -> None:
         super().validate()
@@ -81,7 +81,7 @@ class RolloutBuffer:
                                    dtype=torch.long if discrete else torch.float32, device=device)
         self.log_probs = torch.zeros(shape, device=device)
         self.values = torch.zeros(shape, device=device)
-        # Rewards and episode ends stay in numpy: GAE is a pure numpy function (drivelab.returns).
+        # Rewards and episode ends stay in numpy: GAE is a pure numpy function (drivelab.training.returns).
         self.rewards = np.zeros(shape, np.float32)
         self.next_values = np.zeros(shape, np.float32)
         self.terminated = np.zeros(shape, bool)
@@ -110,7 +110,7 @@ class RolloutCollector:
 
     With ``policy_factory`` (``act_in_workers``) the env subprocesses play the rollouts
     themselves, each with a copy of the policy that ``policy_factory(obs_space, act_space)``
-    builds and the trainer's weights of the moment (:mod:`drivelab.worker_rollouts`): no round
+    builds and the trainer's weights of the moment (:mod:`drivelab.training.worker_rollouts`): no round
     trip per step. The buffer is filled as if the trainer had stepped the envs.
 
     With ``buffers=2`` consecutive rollouts alternate between two buffers, so a batch stays

@@ -1,6 +1,6 @@
 """Parts that DDPG, TD3 and SAC call from their loops: shared hyperparameters, the collector that
 steps envs into a replay buffer, and exploration noise. Their networks are in
-:mod:`drivelab.nets`, the buffer in :mod:`drivelab.buffers`; the loops are in the algorithm files.
+:mod:`drivelab.training.nets`, the buffer in :mod:`drivelab.training.buffers`; the loops are in the algorithm files.
 
 Actions are stored in the policy's units, [-1, 1] per dimension; the agent's ``to_env`` maps
 them onto the env's Box bounds.
@@ -16,13 +16,13 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode
 
-from drivelab.buffers import ReplayBatch, ReplayBuffer
-from drivelab.checkpoint import Checkpoint
+from drivelab.training.buffers import ReplayBatch, ReplayBuffer
+from drivelab.training.checkpoint import Checkpoint
 from drivelab.config import EnvConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
-from drivelab.nets import OffPolicyAgent
-from drivelab.run import Run
+from drivelab.training.nets import OffPolicyAgent
+from drivelab.training.run import Run
 
 
 @dataclass

@@ -19,14 +19,14 @@ from typing import Any
 
 import yaml
 
-from drivelab import __version__
+from drivelab.version import __version__
 from drivelab.api import evaluate_baseline, evaluate_checkpoint
-from drivelab.baselines import BASELINES
-from drivelab.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
+from drivelab.tools.baselines import BASELINES
+from drivelab.training.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
 from drivelab.config import EnvConfig
-from drivelab.plots import plot_runs, read_metrics
-from drivelab.track import default_mlflow_uri
-from drivelab.video import Recorder
+from drivelab.training.plots import plot_runs, read_metrics
+from drivelab.training.tracking import default_mlflow_uri
+from drivelab.training.video import Recorder
 
 STYLE = """
 body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
