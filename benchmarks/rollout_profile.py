@@ -2,15 +2,14 @@
 loop and the update, as milliseconds per env step, as JSON. Not a test.
 
     python benchmarks/rollout_profile.py --num-envs 1                 # lockstep, the drive recipe
-    python benchmarks/rollout_profile.py --num-envs 1 --set ppo.overlap_update=true
+    python benchmarks/rollout_profile.py --num-envs 4 --set env.step_groups=4
 
 Timed (cumulative wall time, each divided by the steps trained; the parts nest, so they do not
 add up): ``collect`` (a whole rollout), ``wait_for_envs`` (the trainer blocked until the workers'
 results are there: the env's own time plus the pipe), ``receive`` (that wait plus reading and
 unpickling the results), ``rollout_step`` (inference, sending the actions, storing the row),
 ``send`` (pickling and writing the actions), ``episodes`` (episode bookkeeping) and ``update``
-(PPO's epochs; with ``overlap_update`` it runs in a background thread, off the critical path).
-Run it with nothing else on the machine; ``benchmarks/throughput.py`` gives the steps/s.
+(PPO's epochs). Run it with nothing else on the machine; ``benchmarks/throughput.py`` gives the steps/s.
 """
 
 from __future__ import annotations

@@ -10,8 +10,6 @@ For each number of env processes N (default 1, 2 and 4), on the env of a PPO con
 * ``drivelab_groups``: drivelab's PPO with the trainer stepping the envs (``act_in_workers`` off)
   as ``env.step_groups: N``, one step group per env (drivelab.envs.groups: each group steps
   while the trainer chooses the others' actions);
-* ``drivelab_overlap``: ``drivelab`` with ``ppo.overlap_update: true`` (each update runs in a
-  background thread while the envs collect the next rollout, see drivelab/algos/ppo.py);
 * ``sb3``: Stable-Baselines3's PPO (``pip install stable-baselines3``) on the same env factory in a
   ``SubprocVecEnv``, with the config's rollout length, minibatch, epochs, network, Gaussian std
   and normalisation (``VecNormalize``), and its ``target_kl`` (SB3 stops at the first minibatch
@@ -75,13 +73,11 @@ def steady_steps_per_second(rows: list[tuple[int, float]]) -> float:
     return (step1 - step0) / (time1 - time0)
 
 
-def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int, overlap: bool = False,
+def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int,
                    checkpoint: Path | None = None) -> float:
     """Steady steps/s of drivelab's PPO; from ``checkpoint`` (a checkpoint directory of a run of
     this config) it continues that run for ``steps`` steps instead of starting afresh."""
     data = copy.deepcopy(data)
-    if overlap:
-        set_dotted(data, "ppo.overlap_update", True)
     set_dotted(data, "env.num_envs", num_envs)
     set_dotted(data, "env.step_groups", groups)
     with tempfile.TemporaryDirectory() as tmp:
@@ -97,11 +93,6 @@ def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int, ov
         train(cfg, progress=False, resume=checkpoint is not None)
         with open(Path(cfg.run_dir) / "metrics.csv") as f:
             rows = [(int(r["step"]), float(r["time"])) for r in csv.DictReader(f) if r["name"] == "perf/steps_per_s"]
-    if cfg.algo_params.overlap_update:  # set by `overlap` or by the config (--set ppo.overlap_update=true)
-        # Iteration k ends once update k is done and rollout k+1 collected meanwhile, but logs the
-        # steps of rollout k: the last iteration has no rollout to collect. Without its row, the
-        # span holds as many collections as the steps it counts.
-        rows = rows[:-1]
     return steady_steps_per_second(rows)
 
 
@@ -157,8 +148,8 @@ def main() -> None:
     parser.add_argument("--sb3-threads", type=int, default=1, help="torch threads for SB3 (collection and update)")
     parser.add_argument("--update-threads", type=int, help="also measure drivelab with this update_threads "
                         "(drivelab_update_threads)")
-    parser.add_argument("--skip", nargs="*", default=[], choices=["drivelab", "drivelab_groups", "drivelab_overlap",
-                                                                   "sb3", "drivelab_update_threads"])
+    parser.add_argument("--skip", nargs="*", default=[], choices=["drivelab", "drivelab_groups", "sb3",
+                                                                   "drivelab_update_threads"])
     parser.add_argument("--from-checkpoint", metavar="CKPT",
                         help="drivelab's contenders continue this checkpoint (or run directory) of a run of --config "
                              "instead of starting afresh: the steady state of a trained policy, e.g. with target_kl "
@@ -182,7 +173,6 @@ def main() -> None:
     contenders = {
         "drivelab": lambda n: drivelab_speed(tuned, n, None, args.steps, checkpoint=checkpoint),
         "drivelab_groups": lambda n: drivelab_speed(trainer_steps, n, n, args.steps, checkpoint=checkpoint),
-        "drivelab_overlap": lambda n: drivelab_speed(tuned, n, None, args.steps, overlap=True, checkpoint=checkpoint),
         "sb3": lambda n: sb3_speed(data, n, args.steps, args.sb3_threads),
     }
     if args.update_threads:

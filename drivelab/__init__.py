@@ -5,8 +5,9 @@
     policy = drivelab.load(result.run_dir)
     drivelab.evaluate(policy, episodes=10)
 
-Importing drivelab registers its Gymnasium ids (the MetaDrive ids the course notebooks use,
-``MetaDrive-validation-v0`` and friends), so ``gym.make("MetaDrive-validation-v0")`` works.
+Importing drivelab registers its Gymnasium ids (MetaDrive's scenario sets such as
+``MetaDrive-10env-v0`` and ``MetaDrive-validation-v0``, and drivelab's tasks), so
+``gym.make("MetaDrive-validation-v0")`` works.
 """
 
 from drivelab.envs.registration import register_envs
@@ -19,8 +20,9 @@ _API = ("train", "load", "evaluate", "make_env", "build_config")
 
 
 def __getattr__(name: str):
-    """``drivelab.train``, ``drivelab.load``, ``drivelab.evaluate``, ``drivelab.make_env``
-    (:mod:`drivelab.api`), imported on first use so that ``import drivelab`` stays light."""
+    """``drivelab.train``, ``drivelab.load``, ``drivelab.evaluate``, ``drivelab.make_env``,
+    ``drivelab.build_config`` (:mod:`drivelab.api`), imported on first use so that ``import
+    drivelab`` stays light."""
     if name in _API:
         from drivelab import api
 

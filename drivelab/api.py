@@ -7,15 +7,16 @@
     action = policy.act(obs)                            # one observation or a batch
     drivelab.evaluate(policy, "CartPole-v1", episodes=10)   # the dict of `drivelab eval --json`
 
-The CLI calls these same functions. This module sits on top: it hands the algorithm registry
-(:data:`drivelab.algos.ALGORITHMS`) down to the config parser and the run, so that nothing below
-the algorithms imports them.
+The CLI calls these same functions, and nothing else: how a config is built from a file and
+overrides, the rules of resuming a run (:func:`train_config`) and which env the baselines play
+(:func:`baseline_env`) are decided here or below, so the Python API and the CLI behave alike.
+Loading and evaluating checkpoints and baselines live in :mod:`drivelab.tools.policies`
+(re-exported here), where the tools (report, sweep, reward comparison) use them too.
 """
 
 from __future__ import annotations
 
 import contextlib
-import csv
 import dataclasses
 import signal
 import threading
@@ -25,25 +26,23 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import gymnasium as gym
-import numpy as np
-import torch
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 from drivelab.algos import ALGORITHMS, AlgoSpec
-from drivelab.tools.baselines import baseline
-from drivelab.training.checkpoint import Checkpoint, checkpoint_step, list_checkpoints, load_checkpoint, restore
-from drivelab.config import EnvConfig, TrainConfig, parse_config, read_yaml, resolve_config_file, set_dotted
-from drivelab.envs import env_spaces, make_vector_env
+from drivelab.config import EnvConfig, TrainConfig, merge_overrides, read_yaml, resolve_config_file
+from drivelab.envs import env_spaces
 from drivelab.errors import DrivelabError
-from drivelab.training.evaluation import EvalResult, play, run_episodes
-from drivelab.tools.export import DeployedPolicy, export_policy, metadata
+from drivelab.tools.policies import (  # noqa: F401  (re-exported: the API's loading and evaluation)
+    TrainedPolicy, baseline_env, build_config, checkpoint_config, evaluate_baseline, evaluate_checkpoint, load,
+    load_policy, policy_from_checkpoint)
+from drivelab.training.checkpoint import list_checkpoints, load_checkpoint
+from drivelab.training.evaluation import EvalResult, play, run_episodes  # noqa: F401  (EvalResult re-exported)
+from drivelab.training.plots import last_metrics
 from drivelab.training.run import Run
-from drivelab.training.video import Recorder
 
-
-def build_config(data: dict, where: str = "config", algorithms: Mapping[str, AlgoSpec] = ALGORITHMS) -> TrainConfig:
-    """Validate a nested dict (a YAML file's content plus overrides) into a :class:`TrainConfig`."""
-    return parse_config(data, {name: spec.params for name, spec in algorithms.items()}, where)
+# Fields that may change when a run is resumed; anything else would change the experiment.
+RESUMABLE_FIELDS = ("steps", "max_minutes", "torch_threads", "update_threads", "checkpoint_every", "keep_checkpoints",
+                    "stats_window", "log_every", "eval", "device", "track", "ray_address")
 
 
 def default_run_dir(cfg: TrainConfig) -> str:
@@ -84,24 +83,28 @@ class TrainResult(NamedTuple):
     metrics: dict[str, float]     # the last logged value of each metric (episode/*, loss/*, eval/*, perf/*)
 
 
-def train(algo: str | TrainConfig, env: str | Mapping[str, Any] | None = None, *, steps: int | None = None,
-          seed: int | None = None, num_envs: int | None = None, run_dir: str | Path | None = None,
-          config: str | Path | None = None, resume: bool = False, progress: bool = True,
-          algorithms: Mapping[str, AlgoSpec] = ALGORITHMS, **overrides: Any) -> TrainResult:
+def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | None = None, *,
+          steps: int | None = None, seed: int | None = None, num_envs: int | None = None,
+          run_dir: str | Path | None = None, config: str | Path | None = None, resume: bool = False,
+          progress: bool = True, algorithms: Mapping[str, AlgoSpec] = ALGORITHMS, **overrides: Any) -> TrainResult:
     """Train an agent and return its run directory and final metrics.
 
     Either a :class:`TrainConfig`, or an algorithm name with an env (an id, or the ``env``
     section as a dict: ``{"id": "MetaDrive-10env-v0", "action_grid": "3x3"}``) and any config
     field as a keyword: sections as dicts (``ppo={"lr": 1e-3}``, ``eval={"every": 10_000}``) or
     top-level fields (``checkpoint_every=5000``). ``config`` is a YAML file (or the name of a
-    shipped config) that these override. ``resume`` continues ``run_dir``.
+    shipped config) that these override, merged deeply as the CLI's dotted flags are
+    (:func:`drivelab.config.merge_overrides`). ``resume`` continues the run in ``run_dir`` from
+    its latest checkpoint: ``train(run_dir=R, resume=True, steps=...)`` reads the run's saved
+    config, and only :data:`RESUMABLE_FIELDS` may change (as ``drivelab train --resume``).
     """
     if isinstance(algo, TrainConfig):
         cfg = algo
     else:
-        if env is not None:
-            overrides["env"] = {"id": env} if isinstance(env, str) else env
-        cfg = _config_from_arguments(algo, steps, seed, num_envs, run_dir, config, overrides, algorithms)
+        arguments = {"algo": algo, "env": {"id": env} if isinstance(env, str) else env, "steps": steps, "seed": seed,
+                     "run_dir": None if run_dir is None else str(run_dir), **overrides, "env.num_envs": num_envs}
+        arguments = {key: value for key, value in arguments.items() if value is not None}
+        cfg = train_config(arguments, config, resume=run_dir if resume else None, algorithms=algorithms)
     spec = algorithms[cfg.algo]
     if cfg.run_dir is None:
         cfg.run_dir = default_run_dir(cfg)
@@ -143,130 +146,48 @@ def train(algo: str | TrainConfig, env: str | Mapping[str, Any] | None = None, *
     return TrainResult(run.dir, last_metrics(run.dir))
 
 
-def _config_from_arguments(algo: str, steps: int | None, seed: int | None, num_envs: int | None, run_dir,
-                           config, overrides: dict[str, Any], algorithms: Mapping[str, AlgoSpec]) -> TrainConfig:
-    data = read_yaml(resolve_config_file(config)) if config else {}
-    data["algo"] = algo
-    for key, value in {"steps": steps, "seed": seed, "run_dir": None if run_dir is None else str(run_dir)}.items():
-        if value is not None:
-            set_dotted(data, key, value)
+def train_config(overrides: Mapping[str, Any], config: str | Path | None = None, resume: str | Path | None = None,
+                 algorithms: Mapping[str, AlgoSpec] = ALGORITHMS) -> TrainConfig:
+    """The validated config of a run: the fields of ``config`` (a YAML file or a shipped config's
+    name; none: the defaults) with ``overrides`` merged in (dotted keys or nested sections, deeply:
+    :func:`drivelab.config.merge_overrides`). Both faces build their config here.
+
+    ``resume`` (a run directory) starts from that run's saved ``config.yaml`` instead, and only
+    :data:`RESUMABLE_FIELDS` may be overridden with another value than the saved one: the rest
+    would change the experiment that the checkpoints continue.
+    """
+    if resume is None:
+        data = read_yaml(resolve_config_file(config)) if config else {}
+        where = f"config {config}" if config else "config"
+        return build_config(merge_overrides(data, overrides), where=where, algorithms=algorithms)
+    if config:
+        raise DrivelabError("--resume continues a run with its saved config; do not pass --config")
+    saved = Path(resume) / "config.yaml"
+    if not saved.is_file():
+        raise DrivelabError(f"not a drivelab run directory (no config.yaml): {resume}")
+    data = read_yaml(saved)
+    data["run_dir"] = str(resume)
+    for key, value in _leaves(overrides):
+        if key.split(".")[0] not in RESUMABLE_FIELDS and _field(data, key) != value:
+            raise DrivelabError(f"--resume keeps the run's config; '{key}' cannot change "
+                                f"(allowed: {', '.join(RESUMABLE_FIELDS)})")
+    return build_config(merge_overrides(data, overrides), where=f"config of run {resume}", algorithms=algorithms)
+
+
+def _leaves(overrides: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
+    """(dotted field, value) of every field that ``overrides`` sets, nested sections flattened."""
     for key, value in overrides.items():
-        if isinstance(value, Mapping) and isinstance(data.get(key), Mapping):
-            data[key] = {**data[key], **value}
+        if isinstance(value, Mapping) and value:
+            yield from _leaves(value, f"{prefix}{key}.")
         else:
-            data[key] = dict(value) if isinstance(value, Mapping) else value
-    if num_envs is not None:
-        set_dotted(data, "env.num_envs", num_envs)
-    return build_config(data, where="drivelab.train", algorithms=algorithms)
+            yield f"{prefix}{key}", value
 
 
-def last_metrics(run_dir: str | Path) -> dict[str, float]:
-    """The last logged value of each metric in ``RUN/metrics.csv``."""
-    with open(Path(run_dir) / "metrics.csv", newline="") as f:
-        return {row["name"]: float(row["value"]) for row in csv.DictReader(f)}
-
-
-def checkpoint_config(ckpt: Checkpoint, algorithms: Mapping[str, AlgoSpec] = ALGORITHMS) -> TrainConfig:
-    """The resolved config a checkpoint was trained with."""
-    if not isinstance(ckpt.state.get("config"), dict):
-        raise DrivelabError(f"checkpoint file {ckpt.path / 'state.json'} holds no training config")
-    return build_config(ckpt.state["config"], where=f"config in {ckpt.path}", algorithms=algorithms)
-
-
-def policy_from_checkpoint(ckpt: Checkpoint, cfg: TrainConfig, env_cfg: EnvConfig,
-                           algorithms: Mapping[str, AlgoSpec] = ALGORITHMS) -> torch.nn.Module:
-    """The trained policy, in eval mode, built for the spaces of ``env_cfg``."""
-    policy = algorithms[cfg.algo].build_policy(cfg, *env_spaces(env_cfg))
-    restore(ckpt, {"policy": policy}, rng=False)
-    return policy.eval()
-
-
-def load_policy(path: str | Path) -> tuple[torch.nn.Module, TrainConfig, Checkpoint]:
-    """The trained policy of a checkpoint (or a run's latest checkpoint), with its config."""
-    ckpt = load_checkpoint(path)
-    cfg = checkpoint_config(ckpt)
-    return policy_from_checkpoint(ckpt, cfg, cfg.env), cfg, ckpt
-
-
-def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None = None,
-                        env_kwargs: dict | None = None, num_envs: int | None = None, seed: int = 0,
-                        deterministic: bool = True, recorder: Recorder | None = None) -> tuple[EvalResult, EnvConfig, Path]:
-    """Load a checkpoint (or a run's latest) and evaluate its policy.
-
-    ``env_id`` evaluates on another env (e.g. train on ``MetaDrive-100envs-v0``, evaluate on
-    ``MetaDrive-validation-v0``); the training env's kwargs are then dropped, as they may
-    redefine that env's scenario range, and ``env_kwargs`` are used instead. A ``recorder``
-    (:class:`drivelab.training.video.Recorder`) films the episodes, on one env.
-    """
-    if episodes < 1:
-        raise DrivelabError(f"--episodes must be >= 1, got {episodes}")
-    ckpt = load_checkpoint(path)
-    cfg = checkpoint_config(ckpt)
-    env_cfg = cfg.env
-    if env_id is not None and env_id != env_cfg.id:
-        env_cfg.id, env_cfg.kwargs = env_id, {}
-    env_cfg.kwargs.update(env_kwargs or {})
-    env_cfg.num_envs = 1 if recorder is not None else max(1, min(num_envs or env_cfg.num_envs, episodes))
-    result = play(env_cfg, policy_from_checkpoint(ckpt, cfg, env_cfg), episodes, seed, deterministic, recorder=recorder)
-    return result, env_cfg, ckpt.path
-
-
-def evaluate_baseline(name: str, env_cfg: EnvConfig, episodes: int = 10, seed: int = 0,
-                      recorder: Recorder | None = None, deterministic: bool = True) -> EvalResult:
-    """Evaluate a reference policy (``random``, ``lane-keeping``, ``metadrive-expert``; see
-    :mod:`drivelab.tools.baselines`) with the protocol of :func:`evaluate_checkpoint`: same env config,
-    episode k reset with seed ``seed + k``, same metrics; ``deterministic=False`` samples the
-    expert's actions, as it samples a checkpoint's."""
-    if episodes < 1:
-        raise DrivelabError(f"--episodes must be >= 1, got {episodes}")
-    env_cfg = dataclasses.replace(env_cfg, num_envs=1 if recorder else max(1, min(env_cfg.num_envs, episodes)))
-    wrapper, policy = baseline(name, env_spaces(env_cfg)[1], seed, deterministic)
-    return play(env_cfg, policy, episodes, seed, wrapper=wrapper, recorder=recorder)
-
-
-class TrainedPolicy:
-    """A trained policy outside training (``drivelab.load``): observations of the run's env (after
-    its observation filters) -> the simulator's action, with the run's observation normalisation
-    and action adapters applied (:class:`drivelab.tools.export.DeployedPolicy`).
-
-    ``act`` takes one observation or a batch (numpy or torch) and returns numpy actions of the
-    same batch shape; ``env_config`` builds the env it acts in (``drivelab.make_env``): the run's
-    env with its filters and reward, without the action adapters the policy already applies.
-    """
-
-    def __init__(self, deployed: DeployedPolicy, cfg: TrainConfig, checkpoint: Path):
-        self.deployed, self.config, self.checkpoint = deployed.eval().requires_grad_(False), cfg, checkpoint
-        self.env_config = dataclasses.replace(cfg.env, action_grid=None, fixed_throttle=None)
-        self.observation_space, self.action_space = env_spaces(cfg.env)[0], env_spaces(self.env_config)[1]
-
-    @torch.no_grad()
-    def act(self, obs, deterministic: bool = True) -> np.ndarray:
-        x = torch.as_tensor(np.asarray(obs, dtype=self.observation_space.dtype))
-        single = tuple(x.shape) == tuple(self.observation_space.shape)
-        x = x[None] if single else x
-        if deterministic:
-            action = self.deployed(x)
-        else:
-            network = self.deployed.network
-            action = self.deployed.adapt(torch.as_tensor(network.to_env(network.act(x, deterministic=False))))
-        action = action.cpu().numpy()
-        return action[0] if single else action
-
-    def to_env(self, action: np.ndarray) -> np.ndarray:
-        """Identity: ``act`` already returns the simulator's action (the evaluation loop's protocol)."""
-        return action
-
-    def export(self, out: str | Path, fmt: str = "onnx") -> Path:
-        """Write the deterministic policy as ONNX or TorchScript, with ``policy.json``, into ``out``."""
-        meta = metadata(self.config, checkpoint_step(self.checkpoint), self.observation_space, self.action_space)
-        return export_policy(self.deployed, meta, self.observation_space, fmt, Path(out))
-
-
-def load(path: str | Path) -> TrainedPolicy:
-    """The trained policy of a run (its latest checkpoint), a checkpoint directory, or ``RUN/best``."""
-    ckpt = load_checkpoint(path)
-    cfg = checkpoint_config(ckpt)
-    return TrainedPolicy(DeployedPolicy(policy_from_checkpoint(ckpt, cfg, cfg.env), cfg.env), cfg, ckpt.path)
+def _field(data: dict, dotted: str) -> Any:
+    """The value at a dotted path of config data (None where it is not set)."""
+    for key in dotted.split("."):
+        data = data.get(key) if isinstance(data, dict) else None
+    return data
 
 
 def make_env(env: str | EnvConfig, **kwargs: Any) -> gym.Env:

@@ -23,16 +23,13 @@ from pathlib import Path
 from typing import Any
 
 from drivelab import api
-from drivelab.version import __version__
 from drivelab.algos import ALGORITHMS
-from drivelab.tools.baselines import BASELINES
-from drivelab.training.checkpoint import checkpoint_step
-from drivelab.config import EnvConfig, parse_value
+from drivelab.config import parse_value
 from drivelab.errors import DrivelabError
-
-# Fields that may change when a run is resumed; anything else would change the experiment.
-RESUMABLE_FIELDS = ("steps", "max_minutes", "torch_threads", "update_threads", "checkpoint_every", "keep_checkpoints",
-                    "stats_window", "log_every", "eval", "device", "track", "ray_address")
+from drivelab.tools.baselines import BASELINES
+from drivelab.tools.tables import format_evaluation, format_evaluations
+from drivelab.training.checkpoint import checkpoint_step
+from drivelab.version import __version__
 
 
 def parse_overrides(tokens: list[str]) -> dict[str, Any]:
@@ -162,40 +159,22 @@ def _reward_parser(sub) -> None:
     compare.add_argument("--json", action="store_true")
 
 
-def _train_data(args: argparse.Namespace, extra: dict[str, Any]) -> tuple[dict, bool]:
-    from drivelab.config import read_yaml, resolve_config_file, set_dotted
-
+def _train_overrides(args: argparse.Namespace, extra: dict[str, Any]) -> dict[str, Any]:
+    """The config fields that ``drivelab train``'s flags set (dotted keys), the --section.field flags last."""
     flags = {
         "algo": args.algo, "env.id": args.env, "steps": args.steps, "seed": args.seed, "run_dir": args.run_dir,
         "env.num_envs": args.num_envs, "env.action_grid": args.actions,
         "track.mlflow": True if args.mlflow else None, "track.mlflow_uri": args.mlflow_uri,
         "ray_address": args.ray_address,
     }
-    overrides = {k: v for k, v in flags.items() if v is not None} | extra
-    if args.resume:
-        if args.config:
-            raise DrivelabError("--resume continues a run with its saved config; do not pass --config")
-        config_path = Path(args.resume) / "config.yaml"
-        if not config_path.is_file():
-            raise DrivelabError(f"not a drivelab run directory (no config.yaml): {args.resume}")
-        data = read_yaml(config_path)
-        for key in overrides:
-            if key.split(".")[0] not in RESUMABLE_FIELDS and not (key == "run_dir" and overrides[key] == args.resume):
-                raise DrivelabError(f"--resume keeps the run's config; '{key}' cannot change (allowed: {', '.join(RESUMABLE_FIELDS)})")
-        data["run_dir"] = args.resume
-    else:
-        data = read_yaml(resolve_config_file(args.config)) if args.config else {}
-    for key, value in overrides.items():
-        set_dotted(data, key, value)
-    return data, bool(args.resume)
+    return {k: v for k, v in flags.items() if v is not None} | extra
 
 
 def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
     if args.resume:
         args.resume = _local_run(args.resume, args.mlflow_uri, args.run_dir)
-    data, resume = _train_data(args, extra)
-    cfg = api.build_config(data)
-    run_dir, metrics = api.train(cfg, resume=resume, progress=not args.no_progress)
+    cfg = api.train_config(_train_overrides(args, extra), args.config, resume=args.resume)
+    run_dir, metrics = api.train(cfg, resume=bool(args.resume), progress=not args.no_progress)
     shown = [(k, v) for k, v in metrics.items() if k.startswith(("episode/", "eval/")) and "reward/" not in k]
     if shown:
         print("last logged: " + ", ".join(f"{k} {v:.3g}" for k, v in shown))
@@ -205,42 +184,19 @@ def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from drivelab.config import read_yaml, resolve_config_file
-    from drivelab.tools.sweep import format_table, parse_grid, parse_seeds, run_sweep
+    from drivelab.tools.sweep import format_summary, load_sweep, run_sweep
 
-    path = resolve_config_file(args.config)
-    base = read_yaml(path)
-    section = base.pop("sweep", None) or {}
-    if not isinstance(section, dict) or set(section) - {"grid", "seeds"}:
-        raise DrivelabError(f"config file {path}: the sweep section holds only grid and seeds")
-    grid = {key: list(values) if isinstance(values, list) else [values] for key, values in (section.get("grid") or {}).items()}
-    grid.update(parse_grid(args.grid))
-    seeds = parse_seeds(args.seeds if args.seeds is not None else section.get("seeds", [0]))
-    if args.steps is not None:
-        base["steps"] = args.steps
-    out = Path(args.out or Path("runs") / f"sweep-{path.stem}")
-    summary = run_sweep(base, grid, seeds, out, ray_address=args.ray_address, cpus_per_trial=args.cpus_per_trial,
-                        max_concurrent=args.max_concurrent)
-    print(format_table(summary))
+    base, grid, seeds = load_sweep(args.config, args.grid, args.seeds, args.steps)
+    out = Path(args.out or Path("runs") / f"sweep-{Path(args.config).stem}")
+    summary = run_sweep(base, grid, seeds, out, train=api.train, ray_address=args.ray_address,
+                        cpus_per_trial=args.cpus_per_trial, max_concurrent=args.max_concurrent)
+    print(format_summary(summary))
     print(f"sweep saved in {out} (sweep.json, sweep.md, curves.png{', final.png' if (out / 'final.png').is_file() else ''}, "
           "one run directory per setting and seed)")
     if summary.get("failed"):
         print("failed runs (rerun the same command to resume them):\n  " + "\n  ".join(summary["failed"]), file=sys.stderr)
         return 1
     return 0
-
-
-def format_eval(summary: dict, env_id: str, what: str) -> str:
-    rows = [f"evaluation of {what} on {env_id}: {summary['episodes']} episodes",
-            f"  {'return':<18}{summary['return_mean']:10.2f} ± {summary['return_std']:.2f}",
-            f"  {'episode length':<18}{summary['length_mean']:10.1f}"]
-    labels = {"success_rate": "success rate", "crash_rate": "crash rate", "out_of_road_rate": "out-of-road rate",
-              "route_completion": "route completion"}
-    rows += [f"  {label:<18}{100 * summary[key]:9.1f} %" for key, label in labels.items() if key in summary]
-    if "mean_abs_cte" in summary:
-        rows.append(f"  {'mean |CTE|':<18}{summary['mean_abs_cte']:10.3f} m")
-    rows += [f"  {key:<18}{value:10.2f}" for key, value in summary.items() if key.startswith("reward/")]
-    return "\n".join(rows)
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -258,12 +214,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                                                         recorder=_recorder(args))
         rows.append({**result.summary(), "env": env_cfg.id, "checkpoint": str(ckpt), "step": checkpoint_step(ckpt)})
     if args.policy:
-        # The baselines play the env the checkpoints were evaluated on (its id and kwargs, without
-        # a checkpoint's action or observation adapters), or --env.
-        base = EnvConfig(id=args.env or "MetaDrive-validation-v0", kwargs=kwargs) if env_cfg is None else \
-            EnvConfig(id=env_cfg.id, kwargs=dict(env_cfg.kwargs))
-        base.num_envs = args.num_envs or 2
-        base.validate()
+        base = api.baseline_env(env_cfg, args.env, kwargs, num_envs=args.num_envs or 2)
         for name in args.policy:
             rows.append({**api.evaluate_baseline(name, base, args.episodes, args.seed, _recorder(args),
                                                  deterministic=not args.stochastic).summary(),
@@ -275,9 +226,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     elif len(rows) == 1:
         row = rows[0]
         what = f"{row['checkpoint']} (step {row['step']})" if "checkpoint" in row else f"the {row['policy']} baseline"
-        print(format_eval(row, row["env"], what))
+        print(format_evaluation(row, row["env"], what))
     else:
-        print(format_table(rows, args.episodes, args.seed, sampled=args.stochastic))
+        print(format_evaluations(rows, args.episodes, args.seed, sampled=args.stochastic))
     if nonfinite:
         raise DrivelabError(f"evaluation gave non-finite results ({', '.join(nonfinite[:3])}): the policy or env diverged")
     return 0
@@ -305,24 +256,6 @@ def _recorder(args: argparse.Namespace):
     return None
 
 
-def format_table(rows: list[dict[str, Any]], episodes: int, seed: int, sampled: bool = False) -> str:
-    """One line per evaluated policy: return and the driving metrics the env reports."""
-    columns = [(key, label) for key, label in (("success_rate", "success"), ("crash_rate", "crash"),
-                                               ("out_of_road_rate", "off road"), ("route_completion", "route"))
-               if any(key in row for row in rows)]
-    names = [row.get("policy") or f"{row['checkpoint']} (step {row['step']})" for row in rows]
-    width = max(len(n) for n in names) + 2
-    envs = sorted({row["env"] for row in rows})
-    lines = [f"{episodes} episodes each on {', '.join(envs)} (episode k: seed {seed}+k), "
-             f"{'sampled actions' if sampled else 'deterministic'}",
-             f"{'policy':<{width}}{'return':>18}" + "".join(f"{label:>10}" for _, label in columns)]
-    for name, row in zip(names, rows):
-        ret = f"{row['return_mean']:.1f} ± {row['return_std']:.1f}"
-        lines.append(f"{name:<{width}}{ret:>18}" + "".join(
-            f"{100 * row[key]:9.1f}%" if key in row else f"{'-':>10}" for key, _ in columns))
-    return "\n".join(lines)
-
-
 def _env_kwargs(items: list[str]) -> dict[str, Any]:
     kwargs = {}
     for item in items:
@@ -340,8 +273,6 @@ def cmd_reward(args: argparse.Namespace) -> int:
         path = reward_tools.plot_reward(reward_tools.load_reward_config(args.reward), args.out, args.max_cte, args.speed)
         print(f"wrote {path}")
         return 0
-    if args.episodes < 1:
-        raise DrivelabError(f"--episodes must be >= 1, got {args.episodes}")
     configs = {Path(f).stem: reward_tools.load_reward_config(f) for f in args.rewards}
     trajectories = reward_tools.record_episodes(args.env, args.policy, args.episodes, args.seed,
                                                 _env_kwargs(args.env_kwarg), args.max_steps)
@@ -351,7 +282,7 @@ def cmd_reward(args: argparse.Namespace) -> int:
         print(json.dumps({"env": args.env, "policy": args.policy, "episodes": args.episodes, "table": table}))
     else:
         print(f"{args.episodes} episodes of {args.env} with policy '{args.policy}', scored under each reward config:")
-        print(reward_tools.format_table(table))
+        print(reward_tools.format_comparison(table))
         print(f"wrote {args.out}")
     return 0
 
@@ -359,8 +290,6 @@ def cmd_reward(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     from drivelab.tools.report import write_report
 
-    if args.episodes < 1:
-        raise DrivelabError(f"--episodes must be >= 1, got {args.episodes}")
     print(f"wrote {write_report(args.runs, args.out, args.episodes, baselines=not args.no_baselines)}")
     return 0
 
@@ -368,8 +297,6 @@ def cmd_report(args: argparse.Namespace) -> int:
 def cmd_plot(args: argparse.Namespace) -> int:
     from drivelab.training.plots import plot_runs
 
-    if args.window < 1:
-        raise DrivelabError(f"--window must be >= 1, got {args.window}")
     out = args.out or (Path(args.runs[0]) / "curves.png" if len(args.runs) == 1 else "curves.png")
     print(f"wrote {plot_runs(args.runs, out, args.metric, args.window, args.x)}")
     return 0
@@ -394,9 +321,7 @@ def cmd_configs() -> int:
 
 
 def cmd_envs() -> int:
-    from drivelab.envs.registration import metadrive_ids
-
-    from drivelab.envs.registration import TASKS
+    from drivelab.envs.registration import TASKS, metadrive_ids
 
     print("\n".join([*metadrive_ids(), *TASKS]))
     print("(and any Gymnasium id: CartPole-v1, LunarLander-v3, CarRacing-v3, ...)")

@@ -1,4 +1,5 @@
-"""Typed run configuration: dataclasses, filled from defaults <- YAML file <- CLI overrides.
+"""Typed run configuration: dataclasses, filled from defaults <- YAML file <- overrides (the
+CLI's dotted flags or the Python API's keywords, both merged by :func:`merge_overrides`).
 
 A config file looks like the one saved in every run directory (``config.yaml``)::
 
@@ -17,6 +18,7 @@ algorithms imports them.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
 import math
@@ -180,17 +182,43 @@ def parse_value(text: str) -> Any:
 
 
 def set_dotted(data: dict, dotted: str, value: Any) -> None:
-    """data["a"]["b"] = value for dotted == "a.b", creating intermediate mappings."""
-    keys = dotted.split(".")
-    node = data
-    for key in keys[:-1]:
-        child = node.get(key)
-        if child is None:
-            child = node[key] = {}
-        if not isinstance(child, dict):
-            raise DrivelabError(f"config field '{dotted}': '{key}' is not a section")
-        node = child
-    node[keys[-1]] = value
+    """data["a"]["b"] = value for dotted == "a.b", creating intermediate mappings (a mapping value
+    merges into the section there, as in :func:`merge_overrides`)."""
+    merge_overrides(data, {dotted: value})
+
+
+def merge_overrides(data: dict, overrides: Mapping[str, Any]) -> dict:
+    """Merge ``overrides`` into the config data ``data`` (in place; returned too), deeply.
+
+    A key is a field or a dotted path to one (``"env.kwargs.traffic_density"``); a mapping merges
+    into the section at its place and keeps that section's other fields, at every depth; any
+    other value (a number, a list, None) replaces. So ``{"env": {"kwargs": {"a": 1}}}`` (the
+    Python API's keyword sections) and ``{"env.kwargs.a": 1}`` (the CLI's ``--env.kwargs.a 1``)
+    mean the same: the config file's other ``env.kwargs`` stay. Both faces merge with this.
+    """
+    for dotted, value in overrides.items():
+        *sections, name = dotted.split(".")
+        node = data
+        for key in sections:
+            child = node.get(key)
+            if child is None:
+                child = node[key] = {}
+            if not isinstance(child, dict):
+                raise DrivelabError(f"config field '{dotted}': '{key}' is not a section")
+            node = child
+        _merge_field(node, name, value)
+    return data
+
+
+def _merge_field(section: dict, name: str, value: Any) -> None:
+    """section[name] = value, merging a mapping into the mapping already there (copies, so that
+    the caller's mappings and lists are never shared with the config)."""
+    current = section.get(name)
+    if isinstance(value, Mapping) and isinstance(current, dict):
+        for key, item in value.items():
+            _merge_field(current, key, item)
+    else:
+        section[name] = copy.deepcopy(dict(value) if isinstance(value, Mapping) else value)
 
 
 SHIPPED_CONFIGS = Path(__file__).resolve().parent / "configs"
@@ -232,6 +260,21 @@ def read_yaml(path: str | Path) -> dict:
     return data
 
 
+# Hyperparameters that drivelab no longer has, with the value that meant "off": configs saved in
+# run directories and checkpoints by earlier versions still load when they left them off.
+RETIRED_FIELDS: dict[str, dict[str, Any]] = {"ppo": {"overlap_update": False}}  # removed in 0.4
+
+
+def _without_retired(algo: str, params: Any, where: str) -> Any:
+    if not isinstance(params, dict):
+        return params
+    retired = RETIRED_FIELDS.get(algo, {})
+    for name in set(params) & set(retired):
+        if params[name] != retired[name]:
+            raise DrivelabError(f"{where}: field '{algo}.{name}' was removed from drivelab; remove it from the config")
+    return {name: value for name, value in params.items() if name not in retired}
+
+
 def parse_config(data: dict, algo_params: Mapping[str, type], where: str = "config") -> TrainConfig:
     """Validate a nested dict (YAML file + overrides) into a TrainConfig.
 
@@ -248,7 +291,7 @@ def parse_config(data: dict, algo_params: Mapping[str, type], where: str = "conf
         close = difflib.get_close_matches(str(algo), list(algo_params), n=1)
         hint = f" (did you mean {close[0]}?)" if close else ""
         raise DrivelabError(f"unknown algorithm '{algo}'{hint}; available: {', '.join(algo_params)}")
-    params = data.pop(algo, None) or {}
+    params = _without_retired(algo, data.pop(algo, None) or {}, where)
     stray = [name for name in algo_params if name in data]
     if stray:
         raise DrivelabError(f"{where}: section '{stray[0]}' does not apply to algo '{algo}'")

@@ -6,6 +6,8 @@ from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
+from flaky_env import importable_env
+
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
 
@@ -15,7 +17,7 @@ def run_cli():
 
     def _run(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
         return subprocess.run([sys.executable, "-m", "drivelab", *map(str, args)], capture_output=True, text=True,
-                              timeout=timeout)
+                              timeout=timeout, env=importable_env())  # --env flaky_env:Flaky-v0
 
     return _run
 

@@ -164,9 +164,9 @@ def test_cli_evaluates_the_expert_with_the_checkpoint_protocol(run_cli):
 
 
 def test_eval_table_says_whether_actions_were_sampled():
-    from drivelab.cli import format_table
+    from drivelab.tools.tables import format_evaluations
 
     row = {"policy": "metadrive-expert", "env": "MetaDrive-validation-v0", "return_mean": 1.0, "return_std": 0.0,
            "success_rate": 0.5}
-    assert format_table([row, row], 2, 0).splitlines()[0].endswith(", deterministic")
-    assert format_table([row, row], 2, 0, sampled=True).splitlines()[0].endswith(", sampled actions")
+    assert format_evaluations([row, row], 2, 0).splitlines()[0].endswith(", deterministic")
+    assert format_evaluations([row, row], 2, 0, sampled=True).splitlines()[0].endswith(", sampled actions")

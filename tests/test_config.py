@@ -1,10 +1,12 @@
+import copy
 from pathlib import Path
 
 import pytest
 
-from drivelab.cli import parse_overrides, parse_value
+from drivelab import api
+from drivelab.cli import build_parser, cmd_train, parse_overrides, parse_value
 from drivelab.api import build_config
-from drivelab.config import TrainConfig, config_to_dict, read_yaml, save_config
+from drivelab.config import TrainConfig, config_to_dict, merge_overrides, read_yaml, save_config
 from drivelab.errors import DrivelabError
 from drivelab.tools.sweep import plan, trial_config
 
@@ -38,7 +40,6 @@ def test_round_trip_through_yaml(tmp_path):
     ({"env": {"id": "CartPole-v1", "num_envs": 2, "step_groups": 2}}, "step_groups"),   # sync envs: no groups
     ({"algo": "ppo", "ppo": {"log_std_init": -1.0, "log_std_final": 0.0}}, "log_std_final"),
     ({"update_threads": 0}, "update_threads"),
-    ({"algo": "ppo", "update_threads": 2, "ppo": {"overlap_update": True}}, "update_threads"),
 ])
 def test_bad_fields_name_the_field(data, fragment):
     with pytest.raises(DrivelabError) as err:
@@ -64,6 +65,66 @@ def test_cli_overrides_are_typed():
     assert parse_value("true") is True
     with pytest.raises(DrivelabError, match="needs a value"):
         parse_overrides(["--reinforce.lr"])
+
+
+def test_overrides_merge_deeply_whether_nested_or_dotted():
+    data = {"env": {"id": "CartPole-v1", "kwargs": {"a": 0, "b": 2}}, "ppo": {"hidden": [64, 64]}}
+    section = {"kwargs": {"a": 1}}
+    nested = merge_overrides(copy.deepcopy(data), {"env": section, "ppo": {"hidden": [32]}})
+    dotted = merge_overrides(copy.deepcopy(data), {"env.kwargs.a": 1, "ppo.hidden": [32]})
+    assert nested == dotted == {"env": {"id": "CartPole-v1", "kwargs": {"a": 1, "b": 2}}, "ppo": {"hidden": [32]}}
+    nested["env"]["kwargs"]["c"] = 3
+    assert section == {"kwargs": {"a": 1}}, "the config shares no mapping with the caller's"
+    assert merge_overrides({"env": {"reward": None}}, {"env.reward": {"cte": {}}}) == {"env": {"reward": {"cte": {}}}}
+    with pytest.raises(DrivelabError, match="'steps' is not a section"):
+        merge_overrides({"steps": 10}, {"steps.x": 1})
+
+
+class _Stop(Exception):
+    """Raised instead of starting the run: the test only wants the config it would train with."""
+
+
+def _config_trained_with(monkeypatch, start):
+    seen = []
+
+    def no_run(cfg, **kwargs):
+        seen.append(cfg)
+        raise _Stop
+
+    monkeypatch.setattr(api, "Run", no_run)
+    with pytest.raises(_Stop):
+        start()
+    return seen[0]
+
+
+def test_a_section_keyword_and_a_dotted_flag_override_the_config_file_alike(tmp_path, monkeypatch):
+    """drivelab.train(env={"kwargs": {...}}) keeps the config file's other env kwargs, as --env.kwargs.KEY does."""
+    config = tmp_path / "c.yaml"
+    config.write_text("algo: ppo\nenv: {id: CartPole-v1, num_envs: 2, kwargs: {max_episode_steps: 50}}\n")
+    python = _config_trained_with(monkeypatch, lambda: api.train(
+        config=config, env={"kwargs": {"sutton_barto_reward": True}}, ppo={"lr": 1e-3}, run_dir=tmp_path / "run"))
+    args, unknown = build_parser().parse_known_args(
+        ["train", "--config", str(config), "--env.kwargs.sutton_barto_reward", "true", "--ppo.lr", "1e-3",
+         "--run-dir", str(tmp_path / "run")])
+    cli = _config_trained_with(monkeypatch, lambda: cmd_train(args, parse_overrides(unknown)))
+    assert python.env.kwargs == {"max_episode_steps": 50, "sutton_barto_reward": True}
+    assert config_to_dict(python) == config_to_dict(cli)
+
+
+def test_resuming_reads_the_saved_config_and_lets_only_the_resumable_fields_change(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    save_config(build_config({"algo": "reinforce", "steps": 1000, "seed": 3, "run_dir": "elsewhere"}), run / "config.yaml")
+    cfg = api.train_config({"steps": 5000, "eval": {"every": 100}, "seed": 3, "algo": "reinforce"}, resume=run)
+    assert (cfg.steps, cfg.eval.every, cfg.seed, cfg.run_dir) == (5000, 100, 3, str(run))
+    with pytest.raises(DrivelabError, match="'seed' cannot change"):
+        api.train_config({"seed": 4}, resume=run)
+    with pytest.raises(DrivelabError, match="'reinforce.lr' cannot change"):
+        api.train_config({"reinforce": {"lr": 1.0}}, resume=run)
+    with pytest.raises(DrivelabError, match="do not pass --config"):
+        api.train_config({}, "ppo_cartpole", resume=run)
+    with pytest.raises(DrivelabError, match="no config.yaml"):
+        api.train(run_dir=tmp_path / "missing", resume=True, steps=10)
 
 
 SHIPPED = sorted((Path(__file__).resolve().parent.parent / "drivelab" / "configs").glob("*.yaml"))

@@ -11,6 +11,7 @@ import drivelab  # noqa: F401  (registers the ids)
 from drivelab.config import EnvConfig
 from drivelab.envs import make_env, make_vector_env, metadrive_ids
 from drivelab.envs.metadrive import assets_installed
+from drivelab.envs.registration import TASKS
 from drivelab.envs.wrappers import DiscreteActionGrid
 from drivelab.errors import DrivelabError
 
@@ -22,7 +23,7 @@ def _metadrive_files() -> set[str]:
     return {str(p.relative_to(root)) for p in root.rglob("*") if "__pycache__" not in p.parts}
 
 
-def test_notebook_ids_are_registered_with_their_historical_meaning():
+def test_metadrive_ids_are_registered_with_their_historical_meaning():
     assert set(metadrive_ids()) <= set(gym.registry)
     expected = {"MetaDrive-validation-v0": (0, 1000), "MetaDrive-10env-v0": (1000, 10),
                 "MetaDrive-100envs-v0": (1000, 100), "MetaDrive-1000envs-v0": (1000, 1000),
@@ -32,11 +33,11 @@ def test_notebook_ids_are_registered_with_their_historical_meaning():
         assert (kwargs["start_seed"], kwargs["num_scenarios"]) == (start, count), env_id
 
 
-def test_notebook_line_works_offline_with_state_observations_and_time_limit_truncation(fresh_process):
-    fresh_process(_check_notebook_line)  # it draws the pygame top-down view: see conftest.run_in_fresh_process
+def test_a_metadrive_id_works_offline_with_state_observations_and_time_limit_truncation(fresh_process):
+    fresh_process(_check_metadrive_id)  # it draws the pygame top-down view: see conftest.run_in_fresh_process
 
 
-def _check_notebook_line():
+def _check_metadrive_id():
     before = _metadrive_files()
     env = gym.make("MetaDrive-validation-v0", config={"use_render": False, "horizon": 25, "traffic_density": 0.0})
     try:
@@ -86,6 +87,19 @@ def test_unknown_env_and_bad_kwargs_are_clear_errors():
         make_env(EnvConfig(id="MetaDrive-validation-v0", kwargs={"no_such_option": 1}))
     with pytest.raises(DrivelabError, match="CartPole-v1"):
         make_env(EnvConfig(id="CartPole-v1", kwargs={"no_such_option": 1}))
+
+
+def test_module_env_ids_import_their_module_first():
+    """Gymnasium's "module:EnvId": the module (tests/flaky_env.py) registers the id when imported."""
+    env = make_env(EnvConfig(id="flaky_env:Flaky-v0"))
+    assert env.action_space == gym.spaces.Discrete(2)
+    env.close()
+    with pytest.raises(DrivelabError, match="unknown env id 'flaky_env:Flakey-v0'.*Flaky-v0"):
+        make_env(EnvConfig(id="flaky_env:Flakey-v0"))
+    with pytest.raises(DrivelabError) as err:
+        make_env(EnvConfig(id="no_such_module:Flaky-v0"))
+    assert "could not import module 'no_such_module'" in str(err.value) and "\n" not in str(err.value)
+    assert not any("Flaky" in env_id for env_id in TASKS)   # `drivelab envs` lists no test fixture
 
 
 def test_action_grid_table_is_steering_then_throttle():

@@ -1,24 +1,20 @@
 """A2C / PPO / GRPO: numerics of the shared building blocks, GRPO's group resets, learning."""
 
-import copy
-
 import numpy as np
 import pytest
 import torch
 from gymnasium.vector import AutoresetMode
 
 from drivelab.algos import grpo
-from drivelab.api import build_config
+from drivelab.api import build_config, evaluate_checkpoint, train
 from drivelab.envs import env_spaces, make_vector_env
 from drivelab.errors import DrivelabError
 from drivelab.training.episodes import EpisodeTracker
-from drivelab.api import evaluate_checkpoint
 from drivelab.training.losses import approx_kl, clipped_surrogate_loss, value_loss
 from drivelab.training.nets import ActorCritic
 from drivelab.training.normalize import RunningMeanStd
 from drivelab.training.returns import gae, group_relative_advantages, group_relative_step_advantages
 from drivelab.training.rollout import EpisodeStorage, RolloutCollector
-from drivelab.api import train
 from drivelab.training.run import Run
 
 
@@ -217,87 +213,6 @@ def test_ppo_losses_by_hand():
     assert approx_kl(torch.zeros(5)).item() == 0.0 and approx_kl(torch.tensor([0.3, -0.3])).item() > 0
 
 
-def test_decoupled_ppo_loss_by_hand():
-    # actions from an older policy mu: each sample's clipped term is weighted by pi_prox / mu
-    log_new = torch.log(torch.tensor([1.5, 0.5]))
-    loss, _ = clipped_surrogate_loss(log_new, torch.zeros(2), torch.tensor([1.0, -1.0]), clip_coef=0.2,
-                                     behaviour_weights=torch.tensor([2.0, 0.5]))
-    assert loss.item() == pytest.approx(-(2.0 * 1.2 + 0.5 * -0.8) / 2)
-
-
-def test_two_rollout_buffers_keep_a_batch_intact_while_the_next_is_collected(tmp_path):
-    cfg = build_config({"algo": "ppo", "run_dir": str(tmp_path), "seed": 0, "env": {"id": "CartPole-v1", "num_envs": 2}})
-    obs_space, act_space = env_spaces(cfg.env)
-    agent = ActorCritic(obs_space, act_space, [8])
-    run = Run(cfg, progress=False)
-    collector = RolloutCollector(cfg.env, run, num_steps=8, gamma=0.99, gae_lambda=0.95, scale_rewards=False, buffers=2)
-    try:
-        first = collector.collect(agent)
-        kept = {name: value.clone() for name, value in first._asdict().items()}
-        second = collector.collect(agent)
-        for name, value in kept.items():
-            torch.testing.assert_close(getattr(first, name), value, msg=name)
-        third = collector.collect(agent)   # the buffers alternate: the third rollout reuses the first's
-    finally:
-        collector.close()
-        run.close()
-    assert not torch.equal(first.obs, second.obs) and third.obs.data_ptr() == first.obs.data_ptr()
-
-
-def test_overlapped_ppo_trains_each_rollout_against_the_weights_that_collected_it(tmp_path, monkeypatch):
-    """overlap_update: rollout k+1 is collected by the weights from before update k, and update
-    k+1 uses exactly those as mu (weights pi_prox / mu); the first rollout has no lag."""
-    from drivelab.algos import ppo
-
-    starts, lags = [], []
-
-    def recording_update(agent, optimizer, batch, hp, generator=None):
-        starts.append({k: v.clone() for k, v in agent.state_dict().items()})
-        behaviour = copy.deepcopy(agent)
-        behaviour.load_state_dict(starts[-2] if len(starts) > 1 else starts[-1])
-        with torch.no_grad():
-            torch.testing.assert_close(behaviour.distribution(batch.obs).log_prob(batch.actions), batch.log_probs)
-            _, weights = ppo.proximal(agent, batch)
-        lags.append((weights - 1).abs().max().item())
-        return update(agent, optimizer, batch, hp, generator)
-
-    update = ppo.update
-    monkeypatch.setattr(ppo, "update", recording_update)
-    data = {"algo": "ppo", "steps": 2048, "seed": 0, "run_dir": str(tmp_path / "a"), "env": {"id": "Pendulum-v1", "num_envs": 2},
-            "ppo": {"num_steps": 128, "overlap_update": True, "normalize_obs": True}}
-    train(build_config(data), progress=False)
-    assert len(lags) == 8 and lags[0] < 1e-5 and min(lags[1:]) > 1e-3
-    monkeypatch.setattr(ppo, "update", update)
-    train(build_config({**data, "run_dir": str(tmp_path / "b")}), progress=False)   # same seed, same result
-    first, second = (evaluate_checkpoint(tmp_path / r, episodes=2)[0].summary() for r in "ab")
-    assert first["return_mean"] == second["return_mean"]
-
-
-def test_overlapped_ppo_interrupted_while_collecting_saves_whole_updates(tmp_path, monkeypatch):
-    """Ctrl-C while the next rollout is collected: the update in flight ends and is counted before
-    the checkpoint, whose step, optimiser and observation statistics then agree."""
-    from drivelab.training.checkpoint import list_checkpoints, load_checkpoint
-
-    collect, calls = RolloutCollector.collect, []
-
-    def interrupted_third_collect(self, agent):
-        calls.append(1)
-        if len(calls) == 3:   # rollout 0, rollout 1 (during update 0), rollout 2 (during update 1)
-            raise KeyboardInterrupt
-        return collect(self, agent)
-
-    monkeypatch.setattr(RolloutCollector, "collect", interrupted_third_collect)
-    cfg = build_config({"algo": "ppo", "steps": 2048, "seed": 0, "run_dir": str(tmp_path), "checkpoint_every": 10**6,
-                        "env": {"id": "Pendulum-v1", "num_envs": 2},
-                        "ppo": {"num_steps": 128, "overlap_update": True, "normalize_obs": True}})
-    with pytest.raises(KeyboardInterrupt):
-        train(cfg, progress=False)
-    ckpt = load_checkpoint(list_checkpoints(tmp_path)[-1])
-    assert ckpt.step == 2 * 256                                        # updates 0 and 1, counted
-    assert ckpt.tensors["optim/policy/0/step"].item() == 2 * 4 * 4    # 2 updates x 4 epochs x 4 minibatches
-    assert ckpt.tensors["module/policy/obs_rms.count"].item() == pytest.approx(512, abs=1)
-
-
 def test_running_mean_std_matches_numpy():
     data = np.random.default_rng(0).normal(3.0, 2.0, size=(1000, 4))
     rms = RunningMeanStd((4,))
@@ -324,7 +239,6 @@ def test_ppo_with_normalisation_checkpoints_its_statistics_and_resumes(tmp_path)
 @pytest.mark.slow
 @pytest.mark.parametrize("algo, steps, params", [
     ("ppo", 100_000, {}),
-    ("ppo", 100_000, {"overlap_update": True}),
     ("a2c", 100_000, {}),
     ("grpo", 100_000, {"group_size": 8}),
 ])
@@ -344,7 +258,6 @@ def test_grpo_needs_whole_groups(tmp_path):
 
 @pytest.mark.parametrize("algo, params, grid", [
     ("ppo", {"num_steps": 40, "num_minibatches": 2, "update_epochs": 1}, None),   # continuous actions
-    ("ppo", {"num_steps": 40, "num_minibatches": 2, "update_epochs": 1, "overlap_update": True}, None),
     ("ppo", {"num_steps": 40, "num_minibatches": 2, "update_epochs": 1, "act_in_workers": True}, "3x3"),
     ("grpo", {"group_size": 2, "batch_steps": 40, "update_epochs": 1}, "3x3"),     # same-scenario groups
 ])

@@ -21,6 +21,7 @@ import pytest
 ray = pytest.importorskip("ray")
 
 import drivelab  # noqa: E402
+from flaky_env import importable_env  # noqa: E402
 from drivelab.errors import DrivelabError  # noqa: E402
 
 RAY = str(Path(sys.executable).with_name("ray"))
@@ -33,7 +34,9 @@ def cluster():
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     temp = tempfile.mkdtemp(prefix="dlray", dir="/tmp")  # short: Ray's socket paths must stay < 108 chars
-    env = {**os.environ, "RAY_AUTH_MODE": "disabled"}
+    # Ray workers inherit the cluster's environment: with tests/ on their path they import the test
+    # env modules, as a real cluster would have a user's env package installed.
+    env = importable_env({**os.environ, "RAY_AUTH_MODE": "disabled"})
     os.environ["RAY_AUTH_MODE"] = "disabled"
     subprocess.run([RAY, "start", "--head", "--node-ip-address", "127.0.0.1", "--port", str(port), "--num-cpus", "4",
                     "--temp-dir", temp, "--include-dashboard", "false", "--disable-usage-stats",
@@ -97,7 +100,7 @@ def test_a_killed_env_actor_is_replaced_and_the_run_completes(cluster, tmp_path,
 
 
 def test_repeated_env_failures_stop_the_run_with_one_line_and_an_intact_checkpoint(cluster, tmp_path):
-    env = {"id": "drivelab/Flaky-v0", "num_envs": 2, "backend": "ray", "actor_cpus": 0.5, "max_restarts": 0,
+    env = {"id": "flaky_env:Flaky-v0", "num_envs": 2, "backend": "ray", "actor_cpus": 0.5, "max_restarts": 0,
            "kwargs": {"fail": "raise", "at_step": 30, "marker": str(tmp_path / "failed")}}
     with pytest.raises(DrivelabError, match=r"the env failed 1 times .*RuntimeError: the simulator crashed"):
         drivelab.train("ppo", env, steps=2000, run_dir=tmp_path / "run", progress=False, ray_address=cluster,

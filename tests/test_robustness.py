@@ -209,10 +209,20 @@ def test_damaged_files_are_skipped_or_refused_in_one_line(tmp_path, run_cli):
 
 
 def test_nan_rewards_stop_the_run_in_one_line(tmp_path, run_cli):
-    out = run_cli("train", "--algo", "ppo", "--env", "drivelab/Flaky-v0", "--env.kwargs.fail", "nan",
+    out = run_cli("train", "--algo", "ppo", "--env", "flaky_env:Flaky-v0", "--env.kwargs.fail", "nan",
                   "--env.kwargs.at_step", "100", "--steps", "5000", "--ppo.num_steps", "256", "--run-dir", tmp_path / "n",
                   "--no-progress")
     assert out.returncode == 2 and "diverged" in _one_line(out.stderr)
+
+
+def test_an_env_module_that_cannot_be_imported_is_one_line_naming_it(tmp_path, capsys):
+    from drivelab.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", "--algo", "ppo", "--env", "no_such_module:Flaky-v0", "--steps", "1", "--no-progress",
+              "--run-dir", str(tmp_path / "run")])
+    assert exit_info.value.code == 2 and "'no_such_module'" in _one_line(capsys.readouterr().err)
+    assert not (tmp_path / "run").exists()
 
 
 def test_divergence_stops_the_run_and_saves_no_non_finite_weights(tmp_path, run_cli):
@@ -299,7 +309,7 @@ def test_a_crashed_or_hung_env_worker_is_restarted_and_the_run_completes(fail, i
 
     marker = tmp_path / "failed"
     cfg = build_config({"algo": "ppo", "steps": 1024, "seed": 0, "run_dir": str(tmp_path / "run"),
-                        "env": {"id": "drivelab/Flaky-v0", "num_envs": 2, "backend": "async", "step_timeout": 5,
+                        "env": {"id": "flaky_env:Flaky-v0", "num_envs": 2, "backend": "async", "step_timeout": 5,
                                 "kwargs": {"fail": fail, "at_step": 100, "marker": str(marker)}},
                         "ppo": {"num_steps": 128, "act_in_workers": in_workers}})
     train(cfg, progress=False)

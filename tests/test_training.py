@@ -39,8 +39,7 @@ def test_same_seed_same_metrics_and_interrupted_run_resumes_exactly(tmp_path):
     train(_cartpole(split, 3000), progress=False)          # "killed" after ~3000 steps
     with open(split / "metrics.csv", "a") as f:            # a row written after the last checkpoint
         f.write("999999,0,episode/return,1\n")
-    cfg = _cartpole(split, 6000)
-    train(cfg, resume=True, progress=False)
+    train(run_dir=split, resume=True, steps=6000, progress=False)   # the run's saved config, as `train --resume`
     a, b = _weights(straight), _weights(split)
     assert a.keys() == b.keys()
     for key in a:
@@ -133,7 +132,7 @@ def test_max_minutes_stops_training_with_a_final_checkpoint(tmp_path):
 
 
 def test_updates_run_with_update_threads_and_collection_goes_back_to_torch_threads():
-    from drivelab.training.run import Timing
+    from drivelab.training.timing import Timing
 
     outside = torch.get_num_threads()
     timing = Timing(update_threads=outside + 1)

@@ -16,6 +16,7 @@ from torch.distributions import Categorical
 from drivelab.algos import a2c, ddpg, grpo, ppo, reinforce, sac, td3
 from drivelab.training.buffers import ReplayBatch
 from drivelab.training.nets import ActorCritic, OffPolicyAgent, Policy, limit_log_std, make_target
+from drivelab.training.offpolicy import Optimizers
 from drivelab.training.rollout import RolloutBatch
 
 OBS = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
@@ -177,8 +178,8 @@ def _agent_and_target(stochastic, critics):
 
 
 def _sgd(agent, lrs=(0.05, 0.02)):
-    return {"critic": torch.optim.SGD(agent.critic.parameters(), lr=lrs[0]),
-            "actor": torch.optim.SGD(agent.actor.parameters(), lr=lrs[1])}
+    return Optimizers(critic=torch.optim.SGD(agent.critic.parameters(), lr=lrs[0]),
+                      actor=torch.optim.SGD(agent.actor.parameters(), lr=lrs[1]))
 
 
 def _polyak(before, agent, tau):
@@ -193,7 +194,7 @@ def test_ddpg_update_target_critic_actor_and_polyak():
     critic_expected, ref_q = _expected_after_sgd(
         agent.critic, lambda c: (c(batch.obs, batch.actions)[0] - y).pow(2).mean(), lr=0.05)
     target_before, actor_before = _params(target), copy.deepcopy(agent.actor)
-    out = ddpg.update(agent, target, ddpg.Optimizers(**_sgd(agent)), batch, hp)
+    out = ddpg.update(agent, target, _sgd(agent), batch, hp)
     assert out["loss/critic"].item() == pytest.approx(ref_q.item(), rel=1e-5)
     _assert_params(agent.critic, critic_expected)
     # the actor ascends the *updated* critic: loss -mean Q(s, mu(s))
@@ -217,7 +218,7 @@ def test_td3_update_smooths_the_target_action_and_delays_the_actor():
     critic_expected, ref_q = _expected_after_sgd(
         agent.critic, lambda c: (c(batch.obs, batch.actions) - y).pow(2).mean(dim=1).sum(), lr=0.05)
     actor_before, target_before = _params(agent.actor), _params(target)
-    opt = td3.Optimizers(**_sgd(agent))
+    opt = _sgd(agent)
     torch.manual_seed(7)
     out = td3.update(agent, target, opt, batch, hp, update_actor=False)       # a delayed step: critic only
     assert out["loss/critic"].item() == pytest.approx(ref_q.item(), rel=1e-5) and "loss/actor" not in out
@@ -236,7 +237,7 @@ def test_td3_pre_tanh_penalty_by_hand_and_on_a_saturated_actor():
     # The actor step with the penalty, by hand: -Q_1(s, tanh(u)) + lambda * mean(u^2), after the critic's step.
     agent, target = _agent_and_target(stochastic=False, critics=2)
     batch, hp = _replay_batch(), td3.Params(gamma=0.9, tau=0.1, pre_tanh_l2=0.5)
-    opt = td3.Optimizers(**_sgd(agent, lrs=(0.0, 0.02)))   # a frozen critic: the actor's step alone
+    opt = _sgd(agent, lrs=(0.0, 0.02))   # a frozen critic: the actor's step alone
     u_of = lambda actor: actor.net[:-1](batch.obs)          # noqa: E731
     expected, ref = _expected_after_sgd(
         agent.actor, lambda a: -agent.critic(batch.obs, torch.tanh(u_of(a)))[0].mean() + 0.5 * u_of(a).pow(2).mean(),
@@ -266,7 +267,7 @@ def test_sac_update_soft_target_actor_and_temperature():
         y = batch.rewards + 0.9 * (1 - batch.terminated) * (next_q - alpha * next_log_prob)
     critic_expected, ref_q = _expected_after_sgd(
         agent.critic, lambda c: (c(batch.obs, batch.actions) - y).pow(2).mean(dim=1).sum(), lr=0.05)
-    opt = sac.Optimizers(**_sgd(agent), alpha=torch.optim.SGD([log_alpha], lr=0.5))
+    opt = sac.Optimizers(*_sgd(agent), alpha=torch.optim.SGD([log_alpha], lr=0.5))
     target_before = _params(target)
     torch.manual_seed(11)
     out = sac.update(agent, target, log_alpha, opt, batch, hp, target_entropy)

@@ -14,7 +14,6 @@ default), so metrics are averaged over the iterations between two logs.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -74,9 +73,7 @@ def make_optimizer(agent: ActorCritic, hp: Params) -> torch.optim.Optimizer:
 
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    collector = RolloutCollector(cfg.env, run, num_steps=hp.num_steps, gamma=hp.gamma, gae_lambda=hp.gae_lambda,
-                                 scale_rewards=hp.normalize_reward,
-                                 policy_factory=functools.partial(build_policy, cfg) if hp.act_in_workers else None)
+    collector = RolloutCollector.from_config(cfg, run, build_policy)
     agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
     optimizer = make_optimizer(agent, hp)
     run.start({"policy": agent, **collector.modules()}, {"policy": optimizer}, policy=agent)

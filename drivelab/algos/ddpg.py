@@ -3,14 +3,14 @@
 One critic Q(s, a) regressed on y = r + gamma * (1 - terminated) * Q'(s', mu'(s')); a deterministic
 actor mu(s) ascending Q(s, mu(s)) (Silver et al. 2014's deterministic policy gradient); target
 networks mu', Q' that trail by Polyak averaging; exploration noise (Ornstein-Uhlenbeck as in the
-paper, or Gaussian) with a linear schedule. ``docs/ddpg_notebook_bugs.md`` lists what keeps
-notebook 004's DDPG from learning, and how this file avoids each bug.
+paper, or Gaussian) with a linear schedule. ``docs/ddpg_pitfalls.md`` lists the bugs that
+keep a DDPG implementation from learning (learning rates 50x too large, BatchNorm and dropout in
+the networks, time limits stored as terminal states, ...) and how this file avoids each.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import gymnasium as gym
 import torch
@@ -19,7 +19,8 @@ from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.training.losses import deterministic_actor_loss, saturated_share
 from drivelab.training.nets import OffPolicyAgent, make_target, polyak_update
-from drivelab.training.offpolicy import NoisyExploration, NoisyExplorationParams, ReplayCollector, make_optimizers
+from drivelab.training.offpolicy import (NoisyExploration, NoisyExplorationParams, Optimizers, ReplayCollector,
+                                        make_optimizers)
 from drivelab.training.optim import gradient_step
 from drivelab.training.run import Run
 
@@ -32,11 +33,6 @@ class Params(NoisyExplorationParams):
     noise_std: float = 0.2
     noise_std_final: float = 0.05
     noise_decay_steps: int = 50_000
-
-
-class Optimizers(NamedTuple):
-    critic: torch.optim.Optimizer     # the critic and the (image) encoder
-    actor: torch.optim.Optimizer
 
 
 def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> OffPolicyAgent:
@@ -76,7 +72,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
     explore = NoisyExploration(hp, collector.num_envs, collector.act_space.shape[0], seed=cfg.seed)
     agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
     target = make_target(agent)
-    opt = Optimizers(**make_optimizers(agent, hp))
+    opt = make_optimizers(agent, hp)
     if hp.compile:
         agent.compile_networks()
     collector.start(run.start({"policy": agent, "target": target}, opt._asdict(), policy=agent))

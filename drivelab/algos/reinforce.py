@@ -1,6 +1,6 @@
 """REINFORCE: the vanilla policy gradient with reward-to-go and an entropy bonus.
 
-The update is the one derived in notebook 001 (Williams 1992; Spinning Up, "VPG")::
+The update is the policy-gradient estimator with reward-to-go (Williams 1992; Spinning Up, "VPG")::
 
     grad J(theta) = E_tau [ sum_t  grad log pi_theta(a_t | s_t) * R_t ],
     R_t = sum_{t' >= t} gamma^(t' - t) r_t'                      (discounted reward-to-go)

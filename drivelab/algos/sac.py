@@ -118,7 +118,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
     # Target networks: a Polyak-averaged copy of the agent (its encoder too, so y does not move
     # with the online critic's features). Only its encoder and critics are used.
     target = make_target(agent)
-    opt = Optimizers(**make_optimizers(agent, hp), alpha=torch.optim.Adam([log_alpha], lr=hp.alpha_lr))
+    opt = Optimizers(**make_optimizers(agent, hp)._asdict(), alpha=torch.optim.Adam([log_alpha], lr=hp.alpha_lr))
     if hp.compile:
         agent.compile_networks()
     resumed = run.start({"policy": agent, "target": target, "alpha": torch.nn.ParameterDict({"log_alpha": log_alpha})},

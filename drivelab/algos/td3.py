@@ -15,7 +15,6 @@ are the shared parts (:mod:`drivelab.training.offpolicy`, :mod:`drivelab.trainin
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import gymnasium as gym
 import torch
@@ -25,7 +24,8 @@ from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
 from drivelab.training.losses import deterministic_actor_loss, saturated_share
 from drivelab.training.nets import OffPolicyAgent, make_target, polyak_update
-from drivelab.training.offpolicy import NoisyExploration, NoisyExplorationParams, ReplayCollector, make_optimizers
+from drivelab.training.offpolicy import (NoisyExploration, NoisyExplorationParams, Optimizers, ReplayCollector,
+                                        make_optimizers)
 from drivelab.training.optim import gradient_step
 from drivelab.training.run import Run
 
@@ -40,11 +40,6 @@ class Params(NoisyExplorationParams):
         super().validate()
         if self.policy_delay < 1:
             raise DrivelabError(f"config field 'td3.policy_delay' must be >= 1, got {self.policy_delay}")
-
-
-class Optimizers(NamedTuple):
-    critic: torch.optim.Optimizer     # critics and the (image) encoder
-    actor: torch.optim.Optimizer
 
 
 def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> OffPolicyAgent:
@@ -95,7 +90,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
     collector = ReplayCollector(cfg.env, hp, run, seed=cfg.seed)
     agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
     target = make_target(agent)
-    opt = Optimizers(**make_optimizers(agent, hp))
+    opt = make_optimizers(agent, hp)
     if hp.compile:
         agent.compile_networks()
     explore = NoisyExploration(hp, collector.num_envs, collector.act_space.shape[0], seed=cfg.seed)

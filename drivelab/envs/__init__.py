@@ -1,7 +1,8 @@
 """Environments: one factory for single and vectorised envs from an id and keyword overrides.
 
 Any registered Gymnasium id works (``CartPole-v1``, ``LunarLander-v3``, ...), plus drivelab's
-MetaDrive ids (see :mod:`drivelab.envs.registration`).
+MetaDrive ids (see :mod:`drivelab.envs.registration`), plus Gymnasium's ``"module:EnvId"`` form
+for envs registered by importing ``module`` (e.g. ``flaky_env:Flaky-v0`` in the tests).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import gymnasium as gym
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 
 from drivelab.envs.config import EnvConfig
-from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs
+from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs, registered_id
 from drivelab.envs.filters import apply_filters
 from drivelab.envs.rewards import RewardShaping
 from drivelab.envs.supervised import SupervisedVectorEnv
@@ -31,8 +32,9 @@ __all__ = ["EnvConfig", "make_env", "make_vector_env", "env_spaces", "DiscreteAc
 
 def _check_id(env_id: str) -> None:
     register_envs()
-    if env_id not in gym.registry:
-        close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
+    name = registered_id(env_id)  # "module:EnvId": imports the module, which registers EnvId
+    if name not in gym.registry:
+        close = difflib.get_close_matches(name, list(gym.registry), n=3)
         hint = f" (did you mean {', '.join(close)}?)" if close else ""
         raise DrivelabError(f"unknown env id '{env_id}'{hint}")
 
@@ -106,6 +108,8 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
                     render_mode: str | None = None, wrapper: Callable[[gym.Env], gym.Env] | None = None,
                     on_restart: Callable[[int], None] | None = None) -> VectorEnv:
     """Build ``num_envs`` (default ``cfg.num_envs``) copies of the env as a Gymnasium vector env.
+    ``num_envs`` is at least 1: :meth:`EnvConfig.validate` checks ``cfg.num_envs``, and each override
+    is 1 or more by construction (an env group's share, one env for a video, an evaluation's count).
 
     ``cfg.backend`` picks where they run: ``"sync"`` steps the envs in this process (best for
     cheap envs such as CartPole), ``"async"`` runs one subprocess per env, ``"ray"`` puts them in
@@ -120,8 +124,6 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
     hears of it.
     """
     num_envs = cfg.num_envs if num_envs is None else num_envs
-    if num_envs < 1:
-        raise DrivelabError(f"config field 'env.num_envs' must be >= 1, got {num_envs}")
     _check_id(cfg.id)
     mode = cfg.resolved_backend()
     cfg.check_one_per_process()

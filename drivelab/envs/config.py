@@ -33,7 +33,7 @@ class EnvConfig:
     # "NxM": N steering x M throttle discrete actions over a [steering, throttle] Box action.
     action_grid: str | None = None
     max_steering: float = 0.6
-    # Steering-only 1-D actions at this constant throttle (notebook 003).
+    # Steering-only 1-D actions at this constant throttle (drivelab.envs.wrappers.FixedThrottle).
     fixed_throttle: float | None = None
     # Reward shaping: {term: {weight: w, ...params}} over cte, lane, native, progress
     # (drivelab.envs.rewards); replaces the env's reward.

@@ -27,7 +27,7 @@ from drivelab.errors import DrivelabError
 INSTALL_HINT = ("Duckietown is an optional extra with its own environment: run `make duckietown`, then use "
                 "`xvfb-run .venv-duckietown/bin/drivelab ...` (see README, 'Duckietown')")
 
-# Notebook 004's reward (gym-duckietown's), in drivelab's reward terms.
+# gym-duckietown's own lane reward, in drivelab's reward terms (drivelab.envs.rewards.lane_reward).
 DUCKIETOWN_REWARD = {"lane": {"weight": 1.0, "w_speed": 1.0, "w_dist": 10.0, "w_col": 40.0}}
 
 
@@ -102,7 +102,7 @@ class DuckietownGym(gym.Env):
 
 def DuckietownLaneFollow(render_mode: str | None = None, **simulator: Any) -> gym.Env:
     """``drivelab/DuckietownLaneFollow-v0``: small (60x80) camera images, [steering, throttle]
-    actions, notebook 004's lane reward (``env.reward`` replaces its terms)."""
+    actions, gym-duckietown's lane reward (``env.reward`` replaces its terms)."""
     env: gym.Env = DuckietownGym(render_mode=render_mode, **simulator)
     env = RewardShaping(env, DUCKIETOWN_REWARD)
     return DifferentialDrive(env)

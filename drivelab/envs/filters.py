@@ -29,7 +29,7 @@ def to_float(image: np.ndarray) -> np.ndarray:
 
 
 def crop(image: np.ndarray, top: int = 0, bottom: int = 0, left: int = 0, right: int = 0) -> np.ndarray:
-    """Remove `top`/`bottom` rows and `left`/`right` columns (e.g. the sky in notebook 003)."""
+    """Remove `top`/`bottom` rows and `left`/`right` columns (e.g. the sky above a road camera's horizon)."""
     h, w = image.shape[:2]
     return image[top:h - bottom, left:w - right]
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import os
 import signal
-import sys
 import threading
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -224,14 +223,9 @@ class RayVectorEnv(VectorEnv):
         return last, {}
 
     def _restart(self, a: int, during: str, exc: BaseException) -> None:
-        try:
-            self.budget.spend(self._steps, exc)
-        except DrivelabError:
-            self.close()
-            raise
+        self.budget.spend(self._steps, exc, f"Ray env actor {a} failed during {during} ({{error}}); restarting it, "
+                          "its episodes end as truncated", stop=self.close)
         self.restarts += 1
-        print(f"drivelab: warning: Ray env actor {a} failed during {during} ({error_line(exc)}); restarting it, "
-              "its episodes end as truncated", file=sys.stderr)
         self._ray.kill(self.actors[a], no_restart=True)
         self.actors[a] = self._spawn(self.slices[a])
         if self.on_restart is not None:
@@ -300,42 +294,3 @@ def merge_infos(parts: list[tuple[slice, dict]], n: int) -> dict:
             mask[envs] = True if sub_mask is None else sub_mask
         merged[key], merged["_" + key] = values, mask
     return merged
-
-
-class EvalWorker:
-    """The body of the evaluation actor (``eval.backend: ray``): plays a copy of the policy on its
-    own envs while the trainer goes on training, and films an episode when the result is a new best."""
-
-    def __init__(self, env_cfg, num_envs: int):
-        from drivelab.envs import make_vector_env
-
-        self.env_cfg = env_cfg
-        self.envs = make_vector_env(env_cfg, num_envs=num_envs, autoreset_mode=AutoresetMode.DISABLED)
-
-    def evaluate(self, policy, episodes: int, seed: int, best_metric: str, best: list[float] | None,
-                 film: bool) -> tuple[dict[str, float], bytes | None, np.ndarray | None]:
-        """(summary, video of one episode or None, a strip of its frames or None); the video only
-        when ``film`` and the summary beats ``best`` ([best_metric, return_mean])."""
-        import tempfile
-
-        from drivelab.envs import make_vector_env
-        from drivelab.training.evaluation import run_episodes
-        from drivelab.training.video import Recorder
-
-        policy.eval()
-        summary = run_episodes(self.envs, policy, episodes, seed=seed).summary()
-        score = [summary[best_metric], summary["return_mean"]] if best_metric in summary else None
-        if not film or score is None or (best is not None and score <= best):
-            return summary, None, None
-        with tempfile.TemporaryDirectory() as tmp:
-            recorder = Recorder(os.path.join(tmp, "best.mp4"), max_episodes=1, thumbnails=8)
-            envs = make_vector_env(self.env_cfg, num_envs=1, autoreset_mode=AutoresetMode.DISABLED,
-                                   render_mode="rgb_array")
-            try:
-                run_episodes(envs, policy, 1, seed=seed, recorder=recorder)
-            finally:
-                envs.close()
-            return summary, recorder.paths[0].read_bytes(), recorder.strip()
-
-    def close(self) -> None:
-        self.envs.close()

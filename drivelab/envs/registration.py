@@ -1,7 +1,8 @@
 """Gymnasium ids that drivelab registers on import.
 
-MetaDrive 0.4.2 removed the ids that the course notebooks use. drivelab registers them again with
-their historical meaning (scenario = map + traffic, selected by an integer seed):
+MetaDrive 0.4.2 no longer registers its ``MetaDrive-*`` / ``SafeMetaDrive-*`` Gymnasium ids, which
+older MetaDrive code calls ``gym.make`` with. drivelab registers them again with their historical
+meaning (scenario = map + traffic, selected by an integer seed):
 
 ==========================  ==========  =============  ===================================
 id                          start_seed  num_scenarios  use
@@ -19,9 +20,9 @@ Driving tasks (defaults for learning a skill, trainable by every algorithm that 
 space):
 
 * ``drivelab/MetaDriveLaneFollow-v0``: empty MetaDrive roads (100 scenarios from seed 1000), state
-  observations, notebook 003's cross-track-error reward paid per unit of route progress;
-  ``target_speed=8.0`` (a speed controller) or ``fixed_throttle=0.3`` (notebook 003) give
-  steering-only control.
+  observations, the cross-track-error reward (:func:`drivelab.envs.rewards.cte_reward`) paid per
+  unit of route progress; ``target_speed=8.0`` (a speed controller) or ``fixed_throttle=0.3``
+  give steering-only control.
 * ``drivelab/MetaDriveTopDown-v0``: MetaDrive with uint8 (84, 84, 5) bird's-eye observations for
   CNN agents (no 3D assets needed).
 * ``drivelab/DuckietownLaneFollow-v0``: Duckietown camera lane following, an optional extra
@@ -30,7 +31,11 @@ space):
 
 from __future__ import annotations
 
+import importlib
+
 import gymnasium as gym
+
+from drivelab.errors import DrivelabError
 
 METADRIVE_ENTRY_POINT = "drivelab.envs.metadrive:MetaDriveGym"
 LANE_FOLLOW_ENTRY_POINT = "drivelab.envs.tasks:lane_follow"
@@ -50,11 +55,26 @@ def metadrive_ids() -> list[str]:
     return [f"{prefix}-{suffix}" for prefix in ("MetaDrive", "SafeMetaDrive") for suffix, _, _ in _METADRIVE_SPLITS]
 
 
+def registered_id(env_id: str) -> str:
+    """The id under which ``env_id`` is registered. Gymnasium's ``"module:EnvId"`` form names a
+    module whose import registers ``EnvId`` (as ``gym.make`` does, this imports it first), so envs
+    from outside drivelab need no entry in drivelab; other ids are returned as they are."""
+    module, colon, name = env_id.rpartition(":")
+    if not colon:
+        return env_id
+    try:
+        importlib.import_module(module)
+    except Exception as exc:  # any failure, reported in one line (ModuleNotFoundError, or the module's own)
+        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DrivelabError(f"env id '{env_id}': could not import module '{module}' ({detail})") from None
+    return name
+
+
 def needs_own_process(env_id: str) -> bool:
     """True for simulators that allow one instance per process (MetaDrive's engine is a singleton),
     which must therefore always run in worker subprocesses, even when there is only one."""
     try:
-        entry_point = gym.spec(env_id).entry_point
+        entry_point = gym.spec(registered_id(env_id)).entry_point
     except gym.error.Error:
         return False
     return isinstance(entry_point, str) and (entry_point in (METADRIVE_ENTRY_POINT, LANE_FOLLOW_ENTRY_POINT)
@@ -66,7 +86,6 @@ TASKS = {
     "drivelab/MetaDriveTopDown-v0": (METADRIVE_ENTRY_POINT,
                                      {"observation": "topdown", "start_seed": 1000, "num_scenarios": 100}),
     "drivelab/DuckietownLaneFollow-v0": (DUCKIETOWN_ENTRY_POINT, {}),
-    "drivelab/Flaky-v0": ("drivelab.envs.testing:FlakyEnv", {}),   # fails on purpose (tests)
 }
 
 

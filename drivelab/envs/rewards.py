@@ -3,8 +3,8 @@
 A reward config maps term names to their parameters (``weight`` scales the term)::
 
     reward:
-      cte: {weight: 1.0, scale: 1.0, max_cte: 1.5, crash: -10.0}   # notebook 003
-      lane: {weight: 0.1}                                           # notebook 004
+      cte: {weight: 1.0, scale: 1.0, max_cte: 1.5, crash: -10.0}   # cross-track error
+      lane: {weight: 0.1}                                           # Duckietown's lane reward
       native: {weight: 0.0}
       idle: {weight: 0.1, min_speed: 2.0}                           # waiting costs 0.1 per step
 
@@ -35,11 +35,11 @@ class TermResult:
 
 def cte_reward(info: dict, prev: dict | None, scale: float = 1.0, max_cte: float = 1.5, crash: float = -10.0,
                per: str = "step") -> TermResult:
-    """Notebook 003's cross-track-error reward: scale * (1 - (|cte| / max_cte)^2) near the lane
-    centre; ``crash`` and the end of the episode on a collision, leaving the road, or
-    |cte| > max_cte.
+    """The cross-track-error reward of lane following (e.g. on a Donkey car): scale * (1 -
+    (|cte| / max_cte)^2) near the lane centre; ``crash`` and the end of the episode on a
+    collision, leaving the road, or |cte| > max_cte.
 
-    ``per="step"`` pays it every step, as notebook 003 did for a car at a fixed throttle. When the
+    ``per="step"`` pays it every step, which suits a car at a fixed throttle. When the
     agent controls the throttle, that makes standing still on the centre line optimal;
     ``per="progress"`` pays it in proportion to the route completion gained this step instead
     (scale = the whole route driven on the centre line), like MetaDrive's own lateral factor.
@@ -54,7 +54,7 @@ def cte_reward(info: dict, prev: dict | None, scale: float = 1.0, max_cte: float
 
 
 def lane_reward(info: dict, prev: dict | None, w_speed: float = 1.0, w_dist: float = 10.0, w_col: float = 40.0) -> TermResult:
-    """Notebook 004's lane reward (gym-duckietown's): w_speed * speed * dot_dir - w_dist * |dist|
+    """gym-duckietown's lane reward: w_speed * speed * dot_dir - w_dist * |dist|
     + w_col * collision_penalty, with dot_dir = cos(heading error), dist = CTE (m), and a
     collision penalty of -1 on a collision step (Duckietown's proximity penalty is <= 0)."""
     dot_dir = math.cos(info["heading_error"])

@@ -31,13 +31,17 @@ class RestartBudget:
         self.max_restarts, self.restart_window = max_restarts, restart_window
         self._recent: deque[int] = deque()   # vector step of each recent failure
 
-    def spend(self, step: int, exc: BaseException) -> None:
+    def spend(self, step: int, exc: BaseException, restarting: str, stop: Callable[[], None]) -> None:
+        """Count a failure at vector step ``step`` and warn that ``restarting`` (a sentence) follows;
+        over the budget, ``stop()`` the workers and raise instead."""
         self._recent.append(step)
         while self._recent and self._recent[0] < step - self.restart_window:
             self._recent.popleft()
         if len(self._recent) > self.max_restarts:
+            stop()
             raise DrivelabError(f"the env failed {len(self._recent)} times within {self.restart_window} steps "
                                 f"(env.max_restarts {self.max_restarts}); last error: {error_line(exc)}")
+        print(f"drivelab: warning: {restarting.format(error=error_line(exc))}", file=sys.stderr)
 
 
 def error_line(exc: BaseException) -> str:
@@ -140,14 +144,9 @@ class SupervisedVectorEnv(VectorEnv):
         return last, reward, terminated, truncated, {}
 
     def _restart(self, exc: BaseException) -> None:
-        try:
-            self.budget.spend(self._steps, exc)
-        except DrivelabError:
-            self._stop_workers()
-            raise
+        self.budget.spend(self._steps, exc, "env worker failed ({error}); restarting the envs, their episodes "
+                          "end as truncated", stop=self._stop_workers)
         self.restarts += 1
-        print(f"drivelab: warning: env worker failed ({error_line(exc)}); restarting the envs, "
-              "their episodes end as truncated", file=sys.stderr)
         self._stop_workers()  # a failed or hung exchange: the pipes are out of step, no goodbye
         self.envs = self.make()
         if self.on_restart is not None:

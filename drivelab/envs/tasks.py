@@ -10,7 +10,7 @@ from drivelab.envs.metadrive import MetaDriveGym
 from drivelab.envs.rewards import RewardShaping
 from drivelab.envs.wrappers import CruiseControl
 
-# Notebook 003's CTE reward, scaled for MetaDrive's 3.5 m lanes: the factor 1 - (|cte|/1.5)^2 is
+# The cross-track-error reward (drivelab.envs.rewards.cte_reward), scaled for MetaDrive's 3.5 m lanes: the factor 1 - (|cte|/1.5)^2 is
 # 0 where the car's edge touches the lane line; -10 and the end of the episode on a collision, off
 # the road, or further than 1.5 m from the centre. Paid per unit of route progress (300 for the
 # whole route driven on the centre line, about MetaDrive's native scale), since with a learnable
@@ -21,7 +21,7 @@ LANE_FOLLOW_REWARD = {"cte": {"weight": 1.0, "scale": 300.0, "max_cte": 1.5, "cr
 def lane_follow(render_mode: str | None = None, target_speed: float | None = None, **metadrive: Any) -> gym.Env:
     """MetaDrive lane following: empty roads (no traffic), state observations, the CTE reward
     :data:`LANE_FOLLOW_REWARD` (``env.reward`` replaces its terms; ``env.fixed_throttle`` gives
-    steering-only control at a constant throttle, as notebook 003).
+    steering-only control at a constant throttle).
 
     Args:
         target_speed: steering-only 1-D actions, the throttle held by a speed controller at this

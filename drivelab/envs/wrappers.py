@@ -39,10 +39,10 @@ class DiscreteActionGrid(gym.ActionWrapper):
 
     Index ``i`` maps to ``throttle_levels[i // N]`` and ``steering_levels[i % N]``, with throttle
     ordered from full forward to full brake and steering from full left (+) to full right (-).
-    The default 3x3 grid therefore keeps the action numbering of notebook 000 (0 = full throttle
-    and left, 1 = full throttle and straight, ..., 8 = full brake and right), but emits the action
-    in the order MetaDrive expects: ``[steering, throttle]`` (the notebook put throttle first,
-    so its "full throttle" action actually steered hard left and never accelerated).
+    The default 3x3 grid therefore numbers its actions 0 = full throttle and left, 1 = full
+    throttle and straight, ..., 8 = full brake and right, and emits each in the order MetaDrive
+    expects: ``[steering, throttle]`` (with throttle first, a "full throttle" action would steer
+    hard left and never accelerate).
 
     A single steering bin means "always straight"; a single throttle bin means "fixed throttle
     ``max_throttle``".
@@ -64,8 +64,8 @@ class DiscreteActionGrid(gym.ActionWrapper):
 
 
 class FixedThrottle(gym.ActionWrapper):
-    """Steering-only control at a constant throttle (notebook 003): the agent's action is a 1-D
-    Box [steering] in [-1, 1]; the env receives [steering, throttle]."""
+    """Steering-only control at a constant throttle: the agent's action is a 1-D Box [steering]
+    in [-1, 1]; the env receives [steering, throttle]."""
 
     def __init__(self, env: gym.Env, throttle: float = 0.3):
         super().__init__(env)
@@ -87,7 +87,7 @@ class CruiseControl(gym.Wrapper):
     ``info["speed"]`` (m/s) of the previous step.
 
     A fixed throttle on MetaDrive is a constant engine force, so the car speeds up until it cannot
-    take a curve; a Donkey car's throttle (notebook 003) behaves more like a speed setting.
+    take a curve; a Donkey car's throttle behaves more like a speed setting.
     """
 
     def __init__(self, env: gym.Env, target_speed: float = 8.0, gain: float = 0.5):

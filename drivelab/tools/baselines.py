@@ -6,7 +6,7 @@ same env (drivelab's MetaDrive adapter, e.g. ``MetaDrive-validation-v0``), with 
 ``route_completion``, ``crash``, ``out_of_road`` from the last step's ``info``):
 
 * ``random``: actions drawn uniformly from the action space by a seeded generator. The floor.
-* ``lane-keeping``: :func:`drivelab.tools.reward_tools.lane_keeping_controller`, a proportional
+* ``lane-keeping``: :func:`lane_keeping_controller`, a proportional
   controller that steers against the cross-track and heading errors that the MetaDrive adapter
   reports in ``info`` (``cte``, ``heading_error``) and holds the throttle at 0.5. It sees the lane
   geometry directly (privileged information a learned policy does not get) and ignores traffic.
@@ -49,7 +49,7 @@ evaluation loop is the one trained policies use, unchanged::
     envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, wrapper=wrapper)
     result = drivelab.training.evaluation.run_episodes(envs, policy, episodes=30)
 
-(:func:`drivelab.api.evaluate_baseline` does this; ``drivelab eval --policy metadrive-expert``.)
+(:func:`drivelab.tools.policies.evaluate_baseline` does this; ``drivelab eval --policy metadrive-expert``.)
 """
 
 from __future__ import annotations
@@ -68,7 +68,14 @@ from drivelab.errors import DrivelabError
 BASELINES = ("random", "lane-keeping", "metadrive-expert")
 
 __all__ = ["BASELINES", "baseline", "ExpertActionObservation", "LaneKeepingObservation", "ObservationIsAction",
-           "RandomPolicy"]
+           "RandomPolicy", "lane_keeping_controller"]
+
+
+def lane_keeping_controller(info: dict, k_cte: float = 0.5, k_heading: float = 1.5, throttle: float = 0.5) -> tuple[float, float]:
+    """A proportional lane keeper on privileged lane geometry: steer against the CTE and the
+    heading error (both positive to the left, so steering right is negative); hold the throttle."""
+    steering = float(np.clip(-(k_cte * info["cte"] + k_heading * info["heading_error"]), -1.0, 1.0))
+    return steering, throttle
 
 
 def _check_steering_throttle(space: gym.Space, who: str) -> None:
@@ -134,7 +141,7 @@ class ExpertActionObservation(gym.Wrapper):
 class LaneKeepingObservation(gym.Wrapper):
     """Replaces the observation by the lane-keeping controller's action.
 
-    The controller (:func:`drivelab.tools.reward_tools.lane_keeping_controller`) reads ``cte`` and
+    The controller (:func:`lane_keeping_controller`) reads ``cte`` and
     ``heading_error`` from the ``info`` of ``reset`` and ``step``. Observation: float32 (2,)
     [steering, throttle]; the observation space is the env's action Box. Works on any env whose
     ``info`` carries the lane geometry (drivelab's MetaDrive adapter does) and whose action is a
@@ -147,8 +154,6 @@ class LaneKeepingObservation(gym.Wrapper):
         self.observation_space = _action_box(env.action_space)
 
     def _controller_action(self, info: dict) -> np.ndarray:
-        from drivelab.tools.reward_tools import lane_keeping_controller
-
         if "cte" not in info or "heading_error" not in info:
             raise DrivelabError(f"the lane-keeping baseline needs 'cte' and 'heading_error' in info; "
                                 f"{_env_name(self.env)} does not report them (use a MetaDrive env)")

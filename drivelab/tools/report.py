@@ -20,10 +20,9 @@ from typing import Any
 import yaml
 
 from drivelab.version import __version__
-from drivelab.api import evaluate_baseline, evaluate_checkpoint
 from drivelab.tools.baselines import BASELINES
+from drivelab.tools.policies import baseline_env, evaluate_baseline, evaluate_checkpoint
 from drivelab.training.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
-from drivelab.config import EnvConfig
 from drivelab.training.plots import plot_runs, read_metrics
 from drivelab.training.tracking import default_mlflow_uri
 from drivelab.training.video import Recorder
@@ -69,7 +68,7 @@ def evaluate_for_report(run: Path, episodes: int, baselines: bool, video: bool) 
         result, env_cfg, ckpt = evaluate_checkpoint(path, episodes)
         rows.append((f"{label} checkpoint (step {checkpoint_step(ckpt)})", result.summary()))
     if baselines and env_cfg is not None:
-        base = EnvConfig(id=env_cfg.id, kwargs=dict(env_cfg.kwargs), num_envs=env_cfg.num_envs)
+        base = baseline_env(env_cfg, num_envs=env_cfg.num_envs)
         names = BASELINES if env_cfg.id.startswith(("MetaDrive", "SafeMetaDrive")) else ("random",)
         for name in names:
             if name == "lane-keeping":

@@ -1,6 +1,7 @@
 """``drivelab reward plot`` and ``drivelab reward compare``: look at reward functions before
-training on them (notebook 003 plotted its CTE reward by hand; notebook 004 compared rewards on
-the same episodes).
+training on them. ``plot`` draws one config's reward against the cross-track and heading errors;
+``compare`` scores the same recorded episodes under several configs, to see which one ranks good
+driving (route completion) highest.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ import numpy as np
 
 from drivelab.envs.rewards import TERMS, score, validate_reward_config
 from drivelab.errors import DrivelabError
+from drivelab.tools.baselines import lane_keeping_controller
+from drivelab.tools.tables import format_table
 
 
 def load_reward_config(path: str | Path) -> dict[str, dict]:
@@ -66,17 +69,12 @@ def plot_reward(config: dict[str, dict], out: str | Path, max_cte: float = 3.0, 
     return out
 
 
-def lane_keeping_controller(info: dict, k_cte: float = 0.5, k_heading: float = 1.5, throttle: float = 0.5) -> tuple[float, float]:
-    """A proportional lane keeper on privileged lane geometry: steer against the CTE and the
-    heading error (both positive to the left, so steering right is negative)."""
-    steering = float(np.clip(-(k_cte * info["cte"] + k_heading * info["heading_error"]), -1.0, 1.0))
-    return steering, throttle
-
-
 def record_episodes(env_id: str, policy: str, episodes: int, seed: int = 0, env_kwargs: dict | None = None,
                     max_steps: int = 1000) -> list[list[dict]]:
     """Play ``episodes`` episodes with ``policy`` ('random', 'lane-keeping', or a run/checkpoint
     directory) and return each step's info (the lane geometry the reward terms read)."""
+    if episodes < 1:
+        raise DrivelabError(f"--episodes (episodes to record) must be >= 1, got {episodes}")
     import gymnasium as gym
     import torch
 
@@ -96,7 +94,7 @@ def record_episodes(env_id: str, policy: str, episodes: int, seed: int = 0, env_
                 raise DrivelabError(f"the lane-keeping controller needs [steering] or [steering, throttle] actions; {env_id} has {space}")
             act = lambda obs, info: np.array(lane_keeping_controller(info)[: space.shape[0]], np.float32)  # noqa: E731
     else:
-        from drivelab.api import checkpoint_config, policy_from_checkpoint
+        from drivelab.tools.policies import checkpoint_config, policy_from_checkpoint
         from drivelab.training.checkpoint import load_checkpoint
 
         ckpt = load_checkpoint(policy)
@@ -154,13 +152,13 @@ def compare_rewards(trajectories: list[list[dict]], configs: dict[str, dict[str,
     return table
 
 
-def format_table(table: dict[str, dict[str, float]]) -> str:
-    rows = [f"{'reward config':<24}{'episode reward':>20}{'steps':>8}{'corr(route)':>13}  terms"]
-    for name, row in table.items():
-        terms = ", ".join(f"{k[5:]}={v:.1f}" for k, v in row.items() if k.startswith("term/"))
-        rows.append(f"{name:<24}{row['return_mean']:>12.2f} ± {row['return_std']:<6.2f}{row['steps_counted']:>8.0f}"
-                    f"{row['corr_with_route_completion']:>13.2f}  {terms}")
-    return "\n".join(rows)
+def format_comparison(table: dict[str, dict[str, float]]) -> str:
+    """The table of :func:`compare_rewards`, one line per reward config: the episodes' reward
+    (mean ± std), the steps counted, its correlation with route completion, and each term's sum."""
+    rows = [[name, f"{row['return_mean']:.2f} ± {row['return_std']:.2f}", f"{row['steps_counted']:.0f}",
+             f"{row['corr_with_route_completion']:.2f}",
+             ", ".join(f"{k[5:]}={v:.1f}" for k, v in row.items() if k.startswith("term/"))] for name, row in table.items()]
+    return format_table(["reward config", "episode reward", "steps", "corr(route)", "terms"], rows, align="lrrrl")
 
 
 def plot_comparison(trajectories: list[list[dict]], configs: dict[str, dict[str, dict]], out: str | Path) -> Path:
@@ -192,5 +190,5 @@ def plot_comparison(trajectories: list[list[dict]], configs: dict[str, dict[str,
     return out
 
 
-__all__ = ["TERMS", "load_reward_config", "plot_reward", "record_episodes", "compare_rewards", "format_table",
+__all__ = ["TERMS", "load_reward_config", "plot_reward", "record_episodes", "compare_rewards", "format_comparison",
            "plot_comparison", "lane_keeping_controller"]

@@ -1,8 +1,8 @@
 """Experiments in parallel on Ray Tune: ``drivelab sweep CONFIG --grid K=V1,V2 ... --seeds 0-4``.
 
 Every combination of the grid values and seeds is a normal drivelab run (its own run directory
-``SWEEP/<setting>-s<seed>``, resumable) trained by :func:`drivelab.api.train` inside a Ray Tune
-trial, as many at once as the cluster has CPUs (``cpus_per_trial`` each). Running the same sweep
+``SWEEP/<setting>-s<seed>``, resumable) trained inside a Ray Tune trial by the ``train``
+function that the caller hands down (:func:`drivelab.api.train`: the face above the tools), as many at once as the cluster has CPUs (``cpus_per_trial`` each). Running the same sweep
 again resumes unfinished runs and skips finished ones. At the end: a table of the final metrics
 per setting (mean and 95% confidence interval over the seeds, Student's t), ``sweep.json``,
 ``sweep.md``, the runs' curves (``curves.png``, seeds grouped) and, when a grid key is numeric,
@@ -20,6 +20,7 @@ import itertools
 import json
 import math
 import re
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,11 @@ from typing import Any
 import numpy as np
 import yaml
 
+from drivelab.config import merge_overrides, parse_value, read_yaml, resolve_config_file
 from drivelab.errors import DrivelabError
+from drivelab.tools.policies import build_config
+from drivelab.tools.tables import format_table
+from drivelab.training.plots import last_metrics, mean_and_ci95
 
 # The final metrics summarised per setting, the first of each pair that the runs logged.
 SUMMARY_METRICS = ("eval/success_rate", "eval/route_completion", "eval/return_mean", "episode/success_rate",
@@ -51,8 +56,6 @@ class Trial:
 
 def parse_grid(items: list[str]) -> dict[str, list[Any]]:
     """``["ppo.lr=1e-4,3e-4", ...]`` -> {"ppo.lr": [0.0001, 0.0003]} (values read as on the command line)."""
-    from drivelab.config import parse_value
-
     grid: dict[str, list[Any]] = {}
     for item in items:
         key, sep, values = item.partition("=")
@@ -73,9 +76,26 @@ def parse_seeds(text: str | list[int]) -> list[int]:
             seeds += list(range(int(low), int(high) + 1)) if high else [int(low)]
     except ValueError:
         raise DrivelabError(f"--seeds expects a range like 0-4 or a list like 0,2,7, got {text!r}") from None
-    if not seeds or min(seeds) < 0:
-        raise DrivelabError(f"--seeds must name seeds >= 0, got {text!r}")
+    if not seeds:  # e.g. "3-1"; the range of each seed is the config's rule (field 'seed')
+        raise DrivelabError(f"--seeds names no seed, got {text!r}")
     return seeds
+
+
+def load_sweep(config: str | Path, grid: Sequence[str] = (), seeds: str | None = None, steps: int | None = None
+               ) -> tuple[dict, dict[str, list[Any]], list[int]]:
+    """(base config data, grid, seeds) of a sweep: the config file (or shipped config) and its
+    optional ``sweep:`` section, extended by ``grid`` items (``KEY=V1,V2``, as ``--grid``), with
+    ``seeds`` (as ``--seeds``; default the section's, else 0) and ``steps`` per run if given."""
+    path = resolve_config_file(config)
+    base = read_yaml(path)
+    section = base.pop("sweep", None) or {}
+    if not isinstance(section, dict) or set(section) - {"grid", "seeds"}:
+        raise DrivelabError(f"config file {path}: the sweep section holds only grid and seeds")
+    values = {key: v if isinstance(v, list) else [v] for key, v in (section.get("grid") or {}).items()}
+    values.update(parse_grid(list(grid)))
+    if steps is not None:
+        base["steps"] = steps
+    return base, values, parse_seeds(seeds if seeds is not None else section.get("seeds", [0]))
 
 
 def plan(grid: dict[str, list[Any]], seeds: list[int]) -> list[Trial]:
@@ -84,42 +104,40 @@ def plan(grid: dict[str, list[Any]], seeds: list[int]) -> list[Trial]:
 
 
 def trial_config(base: dict, trial: Trial, run_dir: Path) -> dict:
-    from drivelab.config import set_dotted
-
-    data = copy.deepcopy(base)
-    for key, value in trial.setting.items():
-        set_dotted(data, key, value)
+    """The config data of one trial: the base config with the trial's grid values, seed and run directory."""
+    data = merge_overrides(copy.deepcopy(base), trial.setting)
     data["seed"], data["run_dir"] = trial.seed, str(run_dir)
     return data
 
 
-def _run_trial(config: dict) -> None:
-    """A Ray Tune trial: train (or resume, or skip when finished) one drivelab run."""
+def _run_trial(config: dict, train: Callable[..., Any]) -> None:
+    """A Ray Tune trial: train (or resume, or skip when finished) one drivelab run with ``train``
+    (``train(cfg, resume=..., progress=False)``, as :func:`drivelab.api.train`)."""
     from ray import tune
 
-    from drivelab import api
     from drivelab.training.checkpoint import list_checkpoints
 
     data, run_dir = config["data"], Path(config["data"]["run_dir"])
-    cfg = api.build_config(data, where=f"sweep trial {run_dir.name}")
+    cfg = build_config(data, where=f"sweep trial {run_dir.name}")
     checkpoints = list_checkpoints(run_dir)
     finished = checkpoints and int(checkpoints[-1].name.split("_")[-1]) >= cfg.steps
     if not finished:
-        api.train(cfg, resume=bool(checkpoints), progress=False)
-    tune.report({k: v for k, v in api.last_metrics(run_dir).items() if math.isfinite(v)})
+        train(cfg, resume=bool(checkpoints), progress=False)
+    tune.report({k: v for k, v in last_metrics(run_dir).items() if math.isfinite(v)})
 
 
-def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Path, ray_address: str | None = None,
-              cpus_per_trial: float = 1.0, max_concurrent: int | None = None) -> dict:
-    """Train every trial on Ray Tune, then summarise (see the module docstring). Returns the summary."""
-    from drivelab import api
+def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Path, train: Callable[..., Any],
+              ray_address: str | None = None, cpus_per_trial: float = 1.0, max_concurrent: int | None = None) -> dict:
+    """Train every trial on Ray Tune with ``train`` (:func:`drivelab.api.train`, handed down by
+    the face, which the tools may not import; Ray pickles a module-level function by reference),
+    then summarise (see the module docstring). Returns the summary."""
     from drivelab.envs.ray_backend import connect, import_ray
 
     trials = plan(grid, seeds)
     out = out.resolve()
     datas = [trial_config(base, t, out / t.name) for t in trials]
     for data, t in zip(datas, trials):  # every trial's config is valid before anything runs
-        api.build_config(data, where=f"sweep trial {t.name}")
+        build_config(data, where=f"sweep trial {t.name}")
     out.mkdir(parents=True, exist_ok=True)
     (out / "sweep.yaml").write_text(yaml.safe_dump({"base": base, "grid": grid, "seeds": seeds}, sort_keys=False))
     import_ray()
@@ -127,7 +145,7 @@ def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Pat
     from ray import tune
 
     tuner = tune.Tuner(
-        tune.with_resources(_run_trial, {"cpu": cpus_per_trial}),
+        tune.with_resources(tune.with_parameters(_run_trial, train=train), {"cpu": cpus_per_trial}),
         param_space={"data": tune.grid_search(datas)},
         tune_config=tune.TuneConfig(max_concurrent_trials=max_concurrent, trial_dirname_creator=lambda trial: trial.trial_id),
         run_config=tune.RunConfig(name="tune", storage_path=str(out / ".tune"), verbose=0,
@@ -139,16 +157,13 @@ def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Pat
     if failed:
         summary["failed"] = [f"{Path(r.config['data']['run_dir']).name}: {r.error}".splitlines()[0] for r in failed]
     (out / "sweep.json").write_text(json.dumps(summary, indent=1))
-    (out / "sweep.md").write_text(format_table(summary) + "\n")
+    (out / "sweep.md").write_text(format_summary(summary) + "\n")
     plot_sweep(out, trials, summary)
     return summary
 
 
 def summarise(out: Path, trials: list[Trial]) -> dict:
     """{"settings": [{setting, runs, metrics: {name: [mean, ci95, n]}}]} from the runs' final metrics."""
-    from drivelab.api import last_metrics
-    from drivelab.training.plots import mean_and_ci95
-
     groups: dict[str, list[Trial]] = {}
     for t in trials:
         groups.setdefault(t.setting_name, []).append(t)
@@ -170,20 +185,12 @@ def summarise(out: Path, trials: list[Trial]) -> dict:
     return {"settings": settings}
 
 
-def format_table(summary: dict) -> str:
+def format_summary(summary: dict) -> str:
     """A Markdown table: one row per setting, mean ± 95% CI (n seeds) of each final metric."""
     metrics = [m for m in SUMMARY_METRICS if any(m in s["metrics"] for s in summary["settings"])]
-    lines = ["| setting | " + " | ".join(metrics) + " |", "|---" * (len(metrics) + 1) + "|"]
-    for s in summary["settings"]:
-        cells = []
-        for m in metrics:
-            if m in s["metrics"]:
-                mean, ci, n = s["metrics"][m]
-                cells.append(f"{mean:.3g} ± {ci:.2g} (n={n})")
-            else:
-                cells.append("-")
-        lines.append(f"| {s['name']} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    rows = [[s["name"], *(f"{s['metrics'][m][0]:.3g} ± {s['metrics'][m][1]:.2g} (n={s['metrics'][m][2]})"
+                          if m in s["metrics"] else "-" for m in metrics)] for s in summary["settings"]]
+    return format_table(["setting", *metrics], rows, markdown=True)
 
 
 def plot_sweep(out: Path, trials: list[Trial], summary: dict) -> None:

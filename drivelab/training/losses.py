@@ -19,25 +19,16 @@ def policy_gradient_loss(log_prob: torch.Tensor, weights: torch.Tensor) -> torch
 
 
 def clipped_surrogate_loss(log_prob: torch.Tensor, old_log_prob: torch.Tensor, advantages: torch.Tensor,
-                           clip_coef: float, behaviour_weights: torch.Tensor | None = None
-                           ) -> tuple[torch.Tensor, torch.Tensor]:
+                           clip_coef: float) -> tuple[torch.Tensor, torch.Tensor]:
     """PPO-Clip policy loss (Schulman et al. 2017, eq. 7), negated for minimisation.
 
-    When the actions came from an older policy mu than the one clipped around (pi_old, the
-    "proximal" policy), ``behaviour_weights`` = pi_old / mu corrects for it: the decoupled
-    objective of Hilton et al. 2021 ("Batch size-invariance for policy optimization", eq. 2),
-    E_mu[(pi_old / mu) * min(rho * A, clip(rho) * A)].
-
-    Args: (B,) log pi_theta(a|s), (B,) log pi_old(a|s), (B,) advantages, optional (B,) weights.
+    Args: (B,) log pi_theta(a|s), (B,) log pi_old(a|s), (B,) advantages.
     Returns: (loss, ratio) with ratio (B,) = pi_theta / pi_old.
     """
     ratio = (log_prob - old_log_prob).exp()
     unclipped = ratio * advantages
     clipped = ratio.clamp(1 - clip_coef, 1 + clip_coef) * advantages
-    surrogate = torch.min(unclipped, clipped)
-    if behaviour_weights is not None:
-        surrogate = behaviour_weights * surrogate
-    return -surrogate.mean(), ratio
+    return -torch.min(unclipped, clipped).mean(), ratio
 
 
 def value_loss(values: torch.Tensor, old_values: torch.Tensor, returns: torch.Tensor,

@@ -201,9 +201,7 @@ def limit_log_std(policy: Policy, hp: PolicyNetParams, step: int, total: int) ->
     """Project a Gaussian policy's log std onto its scheduled upper bound (``hp.log_std_final``),
     which falls linearly from ``log_std_init`` at step 0 to ``log_std_final`` at ``total``.
 
-    Called once per iteration before the rollout, so rollout and update share one std (with
-    PPO's ``overlap_update`` the rollout is one update older; the update's proximal pass sees
-    the std it was collected with in its behaviour log-probs). Returns
+    Called once per iteration before the rollout, so rollout and update share one std. Returns
     ``{"charts/policy_std": mean std}`` for the log ({} for discrete actions). Because the
     parameter itself is clipped (projected gradient descent), the saved weights hold the std
     that was used (moved by at most the last update), and resuming recomputes the same bound

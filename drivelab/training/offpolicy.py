@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -65,10 +66,17 @@ class NoisyExplorationParams(OffPolicyParams):
             raise DrivelabError(f"config field 'noise' must be gaussian or ou, got {self.noise!r}")
 
 
-def make_optimizers(agent: OffPolicyAgent, hp: OffPolicyParams) -> dict[str, torch.optim.Optimizer]:
+class Optimizers(NamedTuple):
+    """DDPG's and TD3's optimisers (SAC adds one for its temperature); the field names are the
+    optimisers' names in checkpoints."""
+    critic: torch.optim.Optimizer     # the critics and the (image) encoder
+    actor: torch.optim.Optimizer
+
+
+def make_optimizers(agent: OffPolicyAgent, hp: OffPolicyParams) -> Optimizers:
     """Adam for the critics (which also train the image encoder) and for the actor."""
-    return {"critic": torch.optim.Adam([*agent.encoder.parameters(), *agent.critic.parameters()], lr=hp.critic_lr),
-            "actor": torch.optim.Adam(agent.actor.parameters(), lr=hp.actor_lr)}
+    critic = torch.optim.Adam([*agent.encoder.parameters(), *agent.critic.parameters()], lr=hp.critic_lr)
+    return Optimizers(critic=critic, actor=torch.optim.Adam(agent.actor.parameters(), lr=hp.actor_lr))
 
 
 class ReplayCollector:

@@ -1,7 +1,7 @@
 """Training curves of one or more runs (``drivelab plot``), headless with matplotlib.
 
-By default notebook 002's four panels (episode return, entropy, value/critic loss,
-policy/actor loss), plus success rate and route completion for driving envs and the periodic
+By default four panels (episode return, entropy, value/critic loss, policy/actor loss), the
+ones that tell whether a policy-gradient run learns, plus success rate and route completion for driving envs and the periodic
 evaluation's return when there is one. Each curve is a rolling mean over ``window`` logged
 points. Runs whose configs are equal but for the seed (and run directory) form a group, drawn
 as the mean over seeds with a 95% confidence band (t-distribution over the seeds' curves,
@@ -92,9 +92,16 @@ def mean_and_band(curves: list[tuple[np.ndarray, np.ndarray]], points: int = 200
     return grid, mean, mean - half, mean + half
 
 
+def last_metrics(run_dir: str | Path) -> dict[str, float]:
+    """The last logged value of each metric in ``RUN/metrics.csv`` (a run's final metrics)."""
+    return {name: float(values[-1]) for name, (_, _, values) in read_metrics(run_dir).items()}
+
+
 def plot_runs(run_dirs: list[str | Path], out: str | Path, metrics: list[str] | None = None, window: int = 10,
               x_axis: str = "steps") -> Path:
     """Draw the runs' curves into ``out`` (PNG): one panel per metric (or per default panel)."""
+    if window < 1:
+        raise DrivelabError(f"--window (the rolling mean's length) must be >= 1, got {window}")
     import matplotlib
 
     matplotlib.use("Agg")

@@ -10,7 +10,8 @@ import numpy as np
 
 
 def reward_to_go(rewards: np.ndarray, dones: np.ndarray, gamma: float) -> np.ndarray:
-    """Discounted reward-to-go, R_t = sum_{t'=t}^{T_end} gamma^(t'-t) r_t' (notebook 001).
+    """Discounted reward-to-go, R_t = sum_{t'=t}^{T_end} gamma^(t'-t) r_t' (the policy-gradient
+    theorem's reward-to-go form; Sutton & Barto 2018, section 13.3).
 
     Args:
         rewards: (T, N) or (T,) rewards.

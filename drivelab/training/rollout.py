@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode
 
-from drivelab.config import EnvConfig
+from drivelab.config import EnvConfig, TrainConfig
 from drivelab.envs.groups import EnvGroups
 from drivelab.errors import DrivelabError
 from drivelab.training.nets import ActorCritic, PolicyNetParams, sample
@@ -113,10 +113,6 @@ class RolloutCollector:
     builds and the trainer's weights of the moment (:mod:`drivelab.training.worker_rollouts`): no round
     trip per step. The buffer is filled as if the trainer had stepped the envs.
 
-    With ``buffers=2`` consecutive rollouts alternate between two buffers, so a batch stays
-    intact while the next rollout is collected (PPO's ``overlap_update`` trains on one while the
-    envs fill the other).
-
     Episode returns, lengths and driving metrics go to ``run.episodes``; time spent waiting on
     the envs to ``run.timing.env``. With ``scale_rewards`` the rewards are divided by the running
     std of the discounted return (Engstrom et al. 2020), so the critic's targets keep a stable
@@ -124,8 +120,7 @@ class RolloutCollector:
     """
 
     def __init__(self, env_cfg: EnvConfig, run: Run, *, num_steps: int, gamma: float, gae_lambda: float,
-                 scale_rewards: bool, buffers: int = 1,
-                 policy_factory: Callable[[gym.Space, gym.Space], ActorCritic] | None = None):
+                 scale_rewards: bool, policy_factory: Callable[[gym.Space, gym.Space], ActorCritic] | None = None):
         # act_in_workers (the config checks that the envs are subprocesses stepping together)
         wrapper = functools.partial(PolicyInWorker, make_policy=policy_factory) if policy_factory else None
         self.act_in_workers = policy_factory is not None
@@ -135,9 +130,7 @@ class RolloutCollector:
         self.run, self.gamma, self.gae_lambda = run, gamma, gae_lambda
         n = env_cfg.num_envs
         self.obs_space, self.act_space = self.envs.single_observation_space, self.envs.single_action_space
-        self.buffers = [RolloutBuffer(num_steps, n, self.obs_space, self.act_space, run.device) for _ in range(buffers)]
-        self.buffer = self.buffers[0]   # the one being filled
-        self.rollouts = 0
+        self.buffer = RolloutBuffer(num_steps, n, self.obs_space, self.act_space, run.device)
         self.steps_per_rollout = num_steps * n
         self.obs = self.envs.reset(run.reset_seeds(np.ones(n, bool)))
         self.generators: list[torch.Generator | None] = [None]
@@ -147,6 +140,18 @@ class RolloutCollector:
         self.reward_rms = RunningMeanStd(()) if scale_rewards else None
         self.discounted_return = np.zeros(n)
 
+    @classmethod
+    def from_config(cls, cfg: TrainConfig, run: Run,
+                    build_policy: Callable[[TrainConfig, gym.Space, gym.Space], ActorCritic]) -> RolloutCollector:
+        """The collector an actor-critic config (``cfg.algo_params``, :class:`ActorCriticParams`) asks
+        for: T = ``num_steps``, GAE(``gamma``, ``gae_lambda``), reward scaling with
+        ``normalize_reward``, and with ``act_in_workers`` env workers that build their copy of the
+        policy with ``build_policy(cfg, obs_space, act_space)``."""
+        hp: ActorCriticParams = cfg.algo_params
+        return cls(cfg.env, run, num_steps=hp.num_steps, gamma=hp.gamma, gae_lambda=hp.gae_lambda,
+                   scale_rewards=hp.normalize_reward,
+                   policy_factory=functools.partial(build_policy, cfg) if hp.act_in_workers else None)
+
     def modules(self) -> dict[str, torch.nn.Module]:
         """What a checkpoint must keep of the collector (the reward-scaling statistics)."""
         return {"reward_rms": self.reward_rms} if self.reward_rms is not None else {}
@@ -155,8 +160,7 @@ class RolloutCollector:
     def collect(self, agent: ActorCritic) -> RolloutBatch:
         """Fill the buffer with T steps of ``agent`` in each env; return them with GAE(lambda)
         advantages as a flat batch of B = T * N samples."""
-        self.buffer = buf = self.buffers[self.rollouts % len(self.buffers)]
-        self.rollouts += 1
+        buf = self.buffer
         if self.act_in_workers:
             last_value = self._play_in_workers(agent, buf)
         else:

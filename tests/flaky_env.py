@@ -1,5 +1,9 @@
 """An env that fails on purpose, for testing drivelab's supervision of env workers
-(:mod:`drivelab.envs.supervised`) and for checking a setup: ``drivelab/Flaky-v0``.
+(:mod:`drivelab.envs.supervised`): ``flaky_env:Flaky-v0``.
+
+Gymnasium's "module:EnvId" form imports this module first, which registers ``Flaky-v0``; every
+process that builds the env (a CLI subprocess, a spawned env worker, a Ray actor) therefore needs
+this directory on its path (``PYTHONPATH``, or the parent's ``sys.path`` for spawned workers).
 
 CartPole whose ``step`` raises, kills its process, or hangs once, at step ``at_step`` of the
 worker's life, the first time it runs with a given ``marker`` file (the file records that the
@@ -14,6 +18,14 @@ import time
 from pathlib import Path
 
 import gymnasium as gym
+
+
+def importable_env(env: dict[str, str] | None = None) -> dict[str, str]:
+    """Environment variables (``os.environ`` by default) for a child process that must import this
+    module, such as a CLI run or a Ray worker: this directory goes first on PYTHONPATH."""
+    env = dict(os.environ if env is None else env)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(Path(__file__).parent), env.get("PYTHONPATH")]))
+    return env
 
 
 class FlakyEnv(gym.Wrapper):
@@ -35,3 +47,7 @@ class FlakyEnv(gym.Wrapper):
                 os._exit(1)
             time.sleep(3600)  # hang
         return self.env.step(action)
+
+
+if "Flaky-v0" not in gym.registry:
+    gym.register(id="Flaky-v0", entry_point=FlakyEnv)

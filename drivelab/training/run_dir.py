@@ -1,0 +1,65 @@
+"""The run directory of a training run: its lock, its leftovers, its ``config.yaml``, and the seeds.
+
+A run directory has one writer at a time (``RUN/.lock``, held for the whole run); whatever a
+killed writer left half-done is removed before the run starts, and the resolved config is
+written first, so the directory always says what produced it.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import shutil
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+import torch
+
+from drivelab.config import TrainConfig, save_config
+from drivelab.errors import DrivelabError
+
+
+def open_run_dir(cfg: TrainConfig) -> TextIO:
+    """Create and lock ``cfg.run_dir``, remove stale temporaries and write ``config.yaml``.
+    Returns the lock's file: the lock is held until it is closed."""
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    lock = lock_run_dir(run_dir)
+    remove_stale_temporaries(run_dir)
+    save_config(cfg, run_dir / "config.yaml")
+    return lock
+
+
+def seed_everything(cfg: TrainConfig) -> np.random.Generator:
+    """Seed torch (action sampling, initialisation) with ``cfg.seed``, set its thread count, and
+    return the numpy Generator that draws the env reset seeds."""
+    torch.set_num_threads(cfg.torch_threads)
+    torch.manual_seed(cfg.seed)
+    return np.random.default_rng(cfg.seed)
+
+
+def lock_run_dir(run_dir: Path) -> TextIO:
+    """An exclusive lock on ``RUN/.lock`` for the lifetime of the returned file: a second writer
+    (a fresh run or a --resume) is refused; a killed process's lock goes with it (flock)."""
+    handle = open(run_dir / ".lock", "a+")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        handle.seek(0)
+        owner = handle.read().strip() or "?"
+        handle.close()
+        raise DrivelabError(f"run directory {run_dir} is in use by another drivelab process (pid {owner})") from None
+    handle.seek(0)
+    handle.truncate()
+    handle.write(str(os.getpid()))
+    handle.flush()
+    return handle
+
+
+def remove_stale_temporaries(run_dir: Path) -> None:
+    """Checkpoint directories half-written by a killed process (``checkpoints/.tmp_*``) and the
+    state of an evaluation that never finished (``checkpoints/.eval_pending``): with the lock
+    held, none of them can still be in use."""
+    for tmp in [*(run_dir / "checkpoints").glob(".tmp_*"), run_dir / "checkpoints" / ".eval_pending"]:
+        shutil.rmtree(tmp, ignore_errors=True)
