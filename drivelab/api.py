@@ -18,9 +18,12 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import os
 import signal
+import sys
 import threading
 import time
+import traceback
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -29,20 +32,20 @@ import gymnasium as gym
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 from drivelab.algos import ALGORITHMS, AlgoSpec
-from drivelab.config import EnvConfig, TrainConfig, merge_overrides, read_yaml, resolve_config_file
+from drivelab.config import (RESUMABLE_FIELDS, EnvConfig, TrainConfig, config_to_dict, experiment_differences,
+                             merge_overrides, read_yaml, resolve_config_file)
 from drivelab.envs import env_spaces
-from drivelab.errors import DrivelabError
+from drivelab.envs.supervised import error_line
+from drivelab.errors import DrivelabError, TrainingCrashed
 from drivelab.tools.policies import (  # noqa: F401  (re-exported: the API's loading and evaluation)
     TrainedPolicy, baseline_env, build_config, checkpoint_config, evaluate_baseline, evaluate_checkpoint, load,
     load_policy, policy_from_checkpoint)
-from drivelab.training.checkpoint import list_checkpoints, load_checkpoint
+from drivelab.training.checkpoint import Checkpoint, checkpoint_step, list_checkpoints, load_checkpoint
 from drivelab.training.evaluation import EvalResult, play, run_episodes  # noqa: F401  (EvalResult re-exported)
 from drivelab.training.plots import last_metrics
 from drivelab.training.run import Run
+from drivelab.version import __version__
 
-# Fields that may change when a run is resumed; anything else would change the experiment.
-RESUMABLE_FIELDS = ("steps", "max_minutes", "torch_threads", "update_threads", "checkpoint_every", "keep_checkpoints",
-                    "stats_window", "log_every", "eval", "device", "track", "ray_address")
 
 
 def default_run_dir(cfg: TrainConfig) -> str:
@@ -85,7 +88,7 @@ class TrainResult(NamedTuple):
 
 def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | None = None, *,
           steps: int | None = None, seed: int | None = None, num_envs: int | None = None,
-          run_dir: str | Path | None = None, config: str | Path | None = None, resume: bool = False,
+          run_dir: str | Path | None = None, config: str | Path | None = None, resume: bool | str = False,
           progress: bool = True, algorithms: Mapping[str, AlgoSpec] = ALGORITHMS, **overrides: Any) -> TrainResult:
     """Train an agent and return its run directory and final metrics.
 
@@ -94,33 +97,40 @@ def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | 
     field as a keyword: sections as dicts (``ppo={"lr": 1e-3}``, ``eval={"every": 10_000}``) or
     top-level fields (``checkpoint_every=5000``). ``config`` is a YAML file (or the name of a
     shipped config) that these override, merged deeply as the CLI's dotted flags are
-    (:func:`drivelab.config.merge_overrides`). ``resume`` continues the run in ``run_dir`` from
-    its latest checkpoint: ``train(run_dir=R, resume=True, steps=...)`` reads the run's saved
-    config, and only :data:`RESUMABLE_FIELDS` may change (as ``drivelab train --resume``).
+    (:func:`drivelab.config.merge_overrides`).
+
+    ``resume=True`` continues the run in ``run_dir`` from its latest checkpoint:
+    ``train(run_dir=R, resume=True, steps=...)`` reads the run's saved config, and only
+    :data:`~drivelab.config.RESUMABLE_FIELDS` may change (as ``drivelab train --resume``).
+    ``resume="auto"`` is the command to requeue on a preemptible cluster: it starts the run
+    when ``run_dir`` holds none yet and continues it otherwise (``--resume-if-exists``).
+
+    An unexpected exception inside training leaves the latest checkpoint as it was, writes its
+    traceback to ``RUN/error.log`` and is raised as :class:`~drivelab.errors.TrainingCrashed`.
     """
+    requeue = resume == "auto"
     if isinstance(algo, TrainConfig):
         cfg = algo
+        if requeue:
+            _check_requeue(cfg)
     else:
         arguments = {"algo": algo, "env": {"id": env} if isinstance(env, str) else env, "steps": steps, "seed": seed,
                      "run_dir": None if run_dir is None else str(run_dir), **overrides, "env.num_envs": num_envs}
         arguments = {key: value for key, value in arguments.items() if value is not None}
-        cfg = train_config(arguments, config, resume=run_dir if resume else None, algorithms=algorithms)
+        cfg = train_config(arguments, config, resume=run_dir if resume is True else None, if_exists=requeue,
+                           algorithms=algorithms)
     spec = algorithms[cfg.algo]
     if cfg.run_dir is None:
         cfg.run_dir = default_run_dir(cfg)
-    checkpoint = None
-    if resume and not list_checkpoints(cfg.run_dir):
-        resume = False  # killed before its first checkpoint: nothing was trained, start it afresh
-    if resume:
-        checkpoint = load_checkpoint(cfg.run_dir)
-        if not isinstance(checkpoint.state.get("numpy_rng"), dict):
-            raise DrivelabError(f"checkpoint {checkpoint.path} cannot be resumed: its state.json lacks the RNG state")
-        if checkpoint.step >= cfg.steps:
-            raise DrivelabError(
-                f"run {cfg.run_dir} is already at step {checkpoint.step} >= steps {cfg.steps}; pass a larger --steps to continue"
-            )
-    elif list_checkpoints(cfg.run_dir):
-        raise DrivelabError(f"run directory {cfg.run_dir} already holds a run; use --resume {cfg.run_dir} or another --run-dir")
+    if requeue:  # continue what the directory holds, if anything
+        resume = (Path(cfg.run_dir) / "config.yaml").is_file()
+        finished = list_checkpoints(cfg.run_dir) and load_checkpoint(cfg.run_dir).step >= cfg.steps
+        if resume and finished:
+            return TrainResult(Path(cfg.run_dir), last_metrics(cfg.run_dir))
+    checkpoint = _checkpoint_to_resume(cfg) if resume else None
+    if checkpoint is None and any(checkpoint_step(p) > 0 for p in list_checkpoints(cfg.run_dir)):
+        raise DrivelabError(f"run directory {cfg.run_dir} already holds a run; use --resume {cfg.run_dir} "
+                            "(or --resume-if-exists) or another --run-dir")
     # Fail on a bad env id, env kwargs or an unsupported action space before a run directory exists.
     obs_space, act_space = env_spaces(cfg.env)
     try:
@@ -141,37 +151,106 @@ def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | 
         interrupted = True
         run.checkpoint_now()
         raise
+    except DrivelabError:  # said in one line already (a diverged loss, an env over its restart budget)
+        interrupted = True
+        raise
+    except Exception as exc:  # a bug, or an error drivelab does not know: keep the evidence
+        interrupted = True
+        log = write_error_log(run.dir, exc)
+        raise TrainingCrashed(f"training stopped at step {run.step} by {error_line(exc)}; the traceback is in {log}; "
+                              f"the latest checkpoint is intact: continue with drivelab train --resume {run.dir}") from exc
     finally:
         run.close(interrupted)
     return TrainResult(run.dir, last_metrics(run.dir))
 
 
+def _checkpoint_to_resume(cfg: TrainConfig) -> Checkpoint | None:
+    """The latest checkpoint of ``cfg.run_dir``, checked against ``cfg``; None when the run was
+    stopped before its first checkpoint after step 0: nothing was trained, and starting afresh
+    is exactly the run it would have been (the step-0 checkpoint is saved after the envs drew
+    their first reset seeds, so continuing from it would not be)."""
+    if not any(checkpoint_step(p) > 0 for p in list_checkpoints(cfg.run_dir)):
+        if list_checkpoints(cfg.run_dir):
+            print(f"drivelab: warning: {cfg.run_dir} was stopped before its first checkpoint after step 0; "
+                  "starting it afresh",
+                  file=sys.stderr)
+        return None
+    checkpoint = load_checkpoint(cfg.run_dir)
+    if not isinstance(checkpoint.state.get("numpy_rng"), dict):
+        raise DrivelabError(f"checkpoint {checkpoint.path} cannot be resumed: its state.json lacks the RNG state")
+    if checkpoint.step >= cfg.steps:
+        raise DrivelabError(f"run {cfg.run_dir} is already at step {checkpoint.step} >= steps {cfg.steps}; "
+                            "pass a larger --steps to continue")
+    saved = checkpoint.state.get("config")
+    differences = experiment_differences(config_to_dict(cfg), saved) if isinstance(saved, dict) else []
+    if differences:
+        raise DrivelabError(f"{Path(cfg.run_dir) / 'config.yaml'} does not match the config saved in {checkpoint.path} "
+                            f"(fields {', '.join(differences[:5])}); it was edited or damaged: restore it, or "
+                            "train into a new --run-dir")
+    return checkpoint
+
+
+def write_error_log(run_dir: Path, exc: BaseException) -> Path:
+    """``RUN/error.log``: when and where training stopped, and the full traceback."""
+    log = Path(run_dir) / "error.log"
+    text = "".join(traceback.format_exception(exc))
+    log.write_text(f"drivelab {__version__}, {time.strftime('%Y-%m-%d %H:%M:%S')}, pid {os.getpid()}\n{text}")
+    return log
+
+
 def train_config(overrides: Mapping[str, Any], config: str | Path | None = None, resume: str | Path | None = None,
-                 algorithms: Mapping[str, AlgoSpec] = ALGORITHMS) -> TrainConfig:
+                 if_exists: bool = False, algorithms: Mapping[str, AlgoSpec] = ALGORITHMS) -> TrainConfig:
     """The validated config of a run: the fields of ``config`` (a YAML file or a shipped config's
     name; none: the defaults) with ``overrides`` merged in (dotted keys or nested sections, deeply:
     :func:`drivelab.config.merge_overrides`). Both faces build their config here.
 
     ``resume`` (a run directory) starts from that run's saved ``config.yaml`` instead, and only
-    :data:`RESUMABLE_FIELDS` may be overridden with another value than the saved one: the rest
-    would change the experiment that the checkpoints continue.
+    :data:`~drivelab.config.RESUMABLE_FIELDS` may be overridden with another value than the saved
+    one: the rest would change the experiment that the checkpoints continue.
+
+    ``if_exists`` (requeueing, ``--resume-if-exists``): ``config`` and ``overrides`` describe
+    the run; when its ``run_dir`` already holds a ``config.yaml``, that must describe the same
+    experiment (it may differ in the resumable fields only).
     """
-    if resume is None:
+    if resume is None or if_exists:
         data = read_yaml(resolve_config_file(config)) if config else {}
         where = f"config {config}" if config else "config"
-        return build_config(merge_overrides(data, overrides), where=where, algorithms=algorithms)
+        cfg = build_config(merge_overrides(data, overrides), where=where, algorithms=algorithms)
+        if if_exists:
+            _check_requeue(cfg)
+        return cfg
     if config:
-        raise DrivelabError("--resume continues a run with its saved config; do not pass --config")
+        raise DrivelabError("--resume continues a run with its saved config; do not pass --config "
+                            "(to start or continue one command, use --config X --run-dir R --resume-if-exists)")
     saved = Path(resume) / "config.yaml"
     if not saved.is_file():
-        raise DrivelabError(f"not a drivelab run directory (no config.yaml): {resume}")
+        hint = ("it was stopped before its config was written, so nothing was trained: run the original command "
+                "again (with --resume-if-exists it is safe to requeue)") if Path(resume).is_dir() else "no such directory"
+        raise DrivelabError(f"{resume} is not a drivelab run directory (no config.yaml): {hint}")
     data = read_yaml(saved)
+    if not data:
+        raise DrivelabError(f"{saved} is empty (a write was interrupted): the config inside its latest checkpoint "
+                            "(checkpoints/step_*/state.json) holds the run's settings")
     data["run_dir"] = str(resume)
     for key, value in _leaves(overrides):
         if key.split(".")[0] not in RESUMABLE_FIELDS and _field(data, key) != value:
             raise DrivelabError(f"--resume keeps the run's config; '{key}' cannot change "
                                 f"(allowed: {', '.join(RESUMABLE_FIELDS)})")
     return build_config(merge_overrides(data, overrides), where=f"config of run {resume}", algorithms=algorithms)
+
+
+def _check_requeue(cfg: TrainConfig) -> None:
+    """A requeued command must describe the run its directory holds (if it holds one)."""
+    if cfg.run_dir is None:
+        raise DrivelabError("--resume-if-exists needs --run-dir: the directory to start the run in or continue it from")
+    saved = Path(cfg.run_dir) / "config.yaml"
+    if not saved.is_file():
+        return
+    data = read_yaml(saved)
+    differences = experiment_differences(config_to_dict(cfg), data)
+    if differences:
+        raise DrivelabError(f"run directory {cfg.run_dir} holds another experiment: {', '.join(differences[:5])} "
+                            f"differ from {saved}; use another --run-dir")
 
 
 def _leaves(overrides: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:

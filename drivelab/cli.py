@@ -17,15 +17,18 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import signal
 import sys
+import traceback
 from pathlib import Path
 from typing import Any
 
 from drivelab import api
 from drivelab.algos import ALGORITHMS
 from drivelab.config import parse_value
-from drivelab.errors import DrivelabError
+from drivelab.envs.supervised import error_line
+from drivelab.errors import DrivelabError, TrainingCrashed
 from drivelab.tools.baselines import BASELINES
 from drivelab.tools.tables import format_evaluation, format_evaluations
 from drivelab.training.checkpoint import checkpoint_step
@@ -59,6 +62,9 @@ def _train_parser(sub, epilog: str | None = None) -> None:
     p.add_argument("--config", help="YAML config file, or the name of a shipped config (drivelab configs)")
     p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR (or mlflow:RUN_ID, fetched into "
                                                        "--run-dir or runs/mlflow-RUN_ID) from its latest checkpoint")
+    p.add_argument("--resume-if-exists", action="store_true",
+                   help="with --run-dir: start the run if the directory holds none yet, else continue it (the one "
+                        "command to requeue on a preemptible cluster; the config must describe the same run)")
     p.add_argument("--algo", help=f"algorithm: {', '.join(ALGORITHMS)}")
     p.add_argument("--env", help="Gymnasium env id, e.g. CartPole-v1 or MetaDrive-10env-v0")
     p.add_argument("--steps", type=int, help="total env steps to train for")
@@ -113,6 +119,8 @@ def _eval_parser(sub) -> None:
 def build_parser(train_epilog: str | None = None) -> argparse.ArgumentParser:
     parser = OneLineErrors(prog="drivelab", description="Reinforcement learning for driving simulators.")
     parser.add_argument("--version", action="version", version=f"drivelab {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show the full traceback of an unexpected error "
+                                                            "(also: DRIVELAB_DEBUG=1)")
     sub = parser.add_subparsers(dest="command", required=True)
     _train_parser(sub, train_epilog)
     _eval_parser(sub)
@@ -173,8 +181,12 @@ def _train_overrides(args: argparse.Namespace, extra: dict[str, Any]) -> dict[st
 def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
     if args.resume:
         args.resume = _local_run(args.resume, args.mlflow_uri, args.run_dir)
-    cfg = api.train_config(_train_overrides(args, extra), args.config, resume=args.resume)
-    run_dir, metrics = api.train(cfg, resume=bool(args.resume), progress=not args.no_progress)
+    if args.resume and args.resume_if_exists:
+        raise DrivelabError("give --resume RUN_DIR or --resume-if-exists (with --run-dir), not both")
+    cfg = api.train_config(_train_overrides(args, extra), args.config, resume=args.resume,
+                           if_exists=args.resume_if_exists)
+    resume = "auto" if args.resume_if_exists else bool(args.resume)
+    run_dir, metrics = api.train(cfg, resume=resume, progress=not args.no_progress)
     shown = [(k, v) for k, v in metrics.items() if k.startswith(("episode/", "eval/")) and "reward/" not in k]
     if shown:
         print("last logged: " + ", ".join(f"{k} {v:.3g}" for k, v in shown))
@@ -361,7 +373,10 @@ def main(argv: list[str] | None = None) -> None:
     # and hears Ctrl-C even when started from a shell that ignores SIGINT for background jobs.
     signal.signal(signal.SIGTERM, api.raise_interrupt)
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    args, unknown = parser.parse_known_args(argv)
+    # --debug may stand anywhere (after `train`, its other flags are config fields)
+    debug = "--debug" in argv
+    args, unknown = parser.parse_known_args([a for a in argv if a != "--debug"])
+    args.debug = debug
     run_dir = getattr(args, "resume", None) or getattr(args, "run_dir", None)
     try:
         if args.command == "train":
@@ -371,6 +386,9 @@ def main(argv: list[str] | None = None) -> None:
                 parser.error(f"unrecognized arguments: {' '.join(unknown)}")
             code = {"eval": cmd_eval, "reward": cmd_reward, "export": cmd_export, "plot": cmd_plot, "report": cmd_report, "sweep": cmd_sweep, "configs": lambda a: cmd_configs()}.get(
                 args.command, lambda a: cmd_envs())(args)
+    except TrainingCrashed as exc:  # the traceback is in RUN/error.log
+        _print_error(exc, exc.__cause__, args.debug)
+        sys.exit(1)
     except DrivelabError as exc:
         print(f"drivelab: error: {exc}", file=sys.stderr)
         sys.exit(2)
@@ -381,4 +399,14 @@ def main(argv: list[str] | None = None) -> None:
         hint = f"; continue with: drivelab train --resume {run_dir}" if run_dir else ""
         print(f"\ndrivelab: interrupted{hint}", file=sys.stderr)
         sys.exit(130)
+    except Exception as exc:  # noqa: BLE001 - outside training (loading, evaluating): still one line
+        _print_error(f"{error_line(exc)} (drivelab --debug ... shows the traceback)", exc, args.debug)
+        sys.exit(1)
     sys.exit(code)
+
+
+def _print_error(message: object, exc: BaseException | None, debug: bool) -> None:
+    """One line on stderr; with ``--debug`` (or DRIVELAB_DEBUG=1), the traceback above it."""
+    if exc is not None and (debug or os.environ.get("DRIVELAB_DEBUG") == "1"):
+        traceback.print_exception(exc, file=sys.stderr)
+    print(f"drivelab: error: {message}", file=sys.stderr)

@@ -378,4 +378,31 @@ def config_to_dict(cfg: TrainConfig) -> dict:
 
 
 def save_config(cfg: TrainConfig, path: str | Path) -> None:
-    Path(path).write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+    """Write the resolved config atomically (a temporary file, then a rename): a process killed
+    meanwhile leaves the previous file or none, never half of one."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w") as f:
+        f.write(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+# Fields that may change when a run is resumed; anything else would change the experiment that
+# the checkpoints continue.
+RESUMABLE_FIELDS = ("steps", "max_minutes", "torch_threads", "update_threads", "checkpoint_every", "keep_checkpoints",
+                    "stats_window", "log_every", "eval", "device", "track", "ray_address")
+
+
+def experiment_differences(a: Mapping[str, Any], b: Mapping[str, Any]) -> list[str]:
+    """The dotted fields, outside :data:`RESUMABLE_FIELDS` and ``run_dir`` (a run may move), where
+    two configs (as plain data, :func:`config_to_dict`) differ: the same experiment when empty."""
+    def leaves(data: Any, prefix: str = "") -> dict[str, Any]:
+        if not isinstance(data, Mapping) or not data:
+            return {prefix[:-1]: data}
+        return {k: v for key, value in data.items() for k, v in leaves(value, f"{prefix}{key}.").items()}
+
+    left, right = leaves(a), leaves(b)
+    return sorted(key for key in left.keys() | right.keys()
+                  if key.split(".")[0] not in (*RESUMABLE_FIELDS, "run_dir") and left.get(key) != right.get(key))

@@ -299,10 +299,13 @@ def test_ppo_learns_lane_following_better_than_random(tmp_path):
         random = run_episodes(envs, _RandomPolicy(envs.single_action_space), 10).summary()
     finally:
         envs.close()
-    # Measured (seed 0, 20k steps, the same on every machine we ran it on): trained route 0.24,
-    # |CTE| 0.54 m, episodes of ~120 steps; random route 0.03, |CTE| 0.33 m over its ~30-step
-    # episodes. 0.8 m is where the car's edge reaches the lane line. (The config's 80k steps reach
-    # route 0.73, |CTE| 0.46 m, 50% success.)
+    # Measured (seed 0, 20k steps): trained route 0.24, |CTE| 0.54 m, episodes of ~120 steps;
+    # random route 0.03, |CTE| 0.33 m over its ~30-step episodes. 0.8 m is where the car's edge
+    # reaches the lane line. (The config's 80k steps reach route 0.73, |CTE| 0.46 m, 50% success.)
+    # This test once asserted random + 0.3 after a measured route 0.51 at commit 7564026; that
+    # commit, rerun with today's packages, gives route 0.236, |CTE| 0.535 m, 123-step episodes,
+    # the numbers of every later commit: the drop came from the installed stack (float rounding
+    # of a single 20k-step stream), not from a change to drivelab.
     assert trained["route_completion"] > random["route_completion"] + 0.15, (trained, random)
     assert trained["mean_abs_cte"] < 0.8, trained
 

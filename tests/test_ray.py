@@ -20,6 +20,10 @@ import pytest
 
 ray = pytest.importorskip("ray")
 
+# `ray stop --force` stops every Ray process of the machine: all Ray tests run on one pytest-xdist
+# worker (make test uses --dist loadgroup), one cluster at a time.
+pytestmark = pytest.mark.xdist_group("ray")
+
 import drivelab  # noqa: E402
 from flaky_env import importable_env  # noqa: E402
 from drivelab.errors import DrivelabError  # noqa: E402

@@ -75,7 +75,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
     opt = make_optimizers(agent, hp)
     if hp.compile:
         agent.compile_networks()
-    collector.start(run.start({"policy": agent, "target": target}, opt._asdict(), policy=agent))
+    collector.start(run.start({"policy": agent, "target": target}, opt._asdict(), policy=agent), exploration=explore)
     try:
         while not run.done:
             heat_up = run.step < hp.learning_starts     # uniform random actions until then

@@ -94,8 +94,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
     if hp.compile:
         agent.compile_networks()
     explore = NoisyExploration(hp, collector.num_envs, collector.act_space.shape[0], seed=cfg.seed)
-    collector.start(run.start({"policy": agent, "target": target}, opt._asdict(), policy=agent))
-    critic_updates = 0
+    collector.start(run.start({"policy": agent, "target": target}, opt._asdict(), policy=agent), exploration=explore)
     try:
         while not run.done:
             # 1. Act: uniform random during the heat-up, then mu(s) + exploration noise.
@@ -106,9 +105,8 @@ def train(cfg: TrainConfig, run: Run) -> None:
             explore.end_episodes(collector.step(agent, action))
             # 2. Critic steps at the update-to-data ratio; the actor every policy_delay-th.
             for batch in collector.batches():
-                critic_updates += 1
                 with run.timing.update:
-                    run.record(update(agent, target, opt, batch, hp, update_actor=critic_updates % hp.policy_delay == 0))
+                    run.record(update(agent, target, opt, batch, hp, update_actor=collector.updates % hp.policy_delay == 0))
             # 3. Log, evaluate and checkpoint (with the replay buffer) when due.
             run.end_iteration(collector.num_envs, extra_state=collector.state)
     finally:

@@ -24,7 +24,7 @@ from drivelab.envs.filters import apply_filters
 from drivelab.envs.rewards import RewardShaping
 from drivelab.envs.supervised import SupervisedVectorEnv
 from drivelab.envs.wrappers import DifferentialDrive, DiscreteActionGrid, FixedThrottle, parse_grid
-from drivelab.errors import DrivelabError
+from drivelab.errors import DrivelabError, kill_point
 
 __all__ = ["EnvConfig", "make_env", "make_vector_env", "env_spaces", "DiscreteActionGrid", "FixedThrottle", "DifferentialDrive",
            "metadrive_ids", "needs_own_process"]
@@ -52,7 +52,8 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
     :mod:`drivelab.tools.baselines`; a module-level class, so vector envs can pickle it).
     """
     _check_id(cfg.id)
-    if multiprocessing.parent_process() is not None:
+    in_worker = multiprocessing.parent_process() is not None
+    if in_worker:
         # In an env worker, Ctrl-C is the trainer's to handle: it checkpoints and closes the
         # workers. (SIGTERM stays fatal: the supervisor terminates hung workers with it.)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -73,6 +74,8 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
             task_shaping.replace_terms(cfg.reward)
         else:
             env = RewardShaping(env, cfg.reward)
+    if in_worker and os.environ.get("DRIVELAB_KILL_AT", "").startswith("env-worker"):
+        env = KillPointInWorker(env)
     if cfg.action_grid:
         steering_bins, throttle_bins = parse_grid(cfg.action_grid)
         env = DiscreteActionGrid(env, steering_bins, throttle_bins, max_steering=cfg.max_steering)
@@ -140,3 +143,12 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
         return RayVectorEnv(fns, cfg.envs_per_actor, autoreset_mode, cfg.actor_cpus, cfg.step_timeout,
                             cfg.max_restarts, cfg.restart_window, on_restart)
     raise DrivelabError(f"config field 'env.backend' must be auto, sync, async or ray, got {mode!r}")
+
+
+class KillPointInWorker(gym.Wrapper):
+    """The kill tests' ``env-worker`` phase (:func:`drivelab.errors.kill_point`): every step of an
+    env worker passes it, so ``DRIVELAB_KILL_AT=env-worker:N`` kills a worker at its N-th step."""
+
+    def step(self, action):
+        kill_point("env-worker")
+        return self.env.step(action)

@@ -27,7 +27,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from drivelab.version import __version__
-from drivelab.errors import DrivelabError
+from drivelab.errors import DrivelabError, kill_point
 
 _STEP_DIR = re.compile(r"^step_(\d{12})$")
 
@@ -100,6 +100,8 @@ def save_checkpoint(run_dir: str | Path, step: int, *, modules: dict[str, nn.Mod
     try:
         tmp.mkdir()
         save_file(flat, str(tmp / "tensors.safetensors"))
+        if dirname is None:  # a periodic checkpoint (best and .eval_pending have their own phases)
+            kill_point("mid-checkpoint")
         with open(tmp / "state.json", "w") as f:
             json.dump(full_state, f, indent=1)
             f.flush()
@@ -107,9 +109,15 @@ def save_checkpoint(run_dir: str | Path, step: int, *, modules: dict[str, nn.Mod
     except Exception as exc:  # noqa: BLE001 - a full disk, a lost mount: the previous checkpoint stays the latest
         shutil.rmtree(tmp, ignore_errors=True)
         raise DrivelabError(f"could not write checkpoint {final}: {str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__}") from None
-    if final.exists():
-        shutil.rmtree(final)
-    os.replace(tmp, final)
+    if dirname == "best":
+        kill_point("best-copy")
+    if final.exists():  # set the old one aside first: a kill between the renames loses neither
+        aside = root / f".old_{final.name}_{os.getpid()}"
+        os.replace(final, aside)
+        os.replace(tmp, final)
+        shutil.rmtree(aside)
+    else:
+        os.replace(tmp, final)
     if dirname is not None:
         return final
 

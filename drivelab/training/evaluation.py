@@ -19,7 +19,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 
 from drivelab.config import EvalConfig
 from drivelab.envs import EnvConfig, make_vector_env
-from drivelab.errors import DrivelabError
+from drivelab.errors import DrivelabError, kill_point
 from drivelab.training.episodes import EpisodeTracker
 from drivelab.training.video import Recorder
 
@@ -79,6 +79,7 @@ def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, determin
                 for name, value in episode.metrics.items():
                     metrics.setdefault(name, np.zeros(episodes))[k] = value
                 finished += 1
+                kill_point("mid-video" if recorder is not None else "mid-evaluation")
             episode_of[episode.env] = next_episode
             reset_seeds[episode.env] = seed + next_episode
             next_episode += 1

@@ -103,20 +103,30 @@ class ReplayCollector:
         self.hp, self.run = hp, run
         self.steps = run.step                 # env steps taken (run.step after this collector's last step)
         self.obs = None
-        self._updates_owed = 0.0
+        self._updates_owed = 0.0              # fractional gradient steps carried over (utd < 1)
+        self.updates = 0                      # gradient steps taken (TD3 updates its actor every policy_delay-th)
+        self.exploration: NoisyExploration | None = None
         self._reset_seeds = np.zeros(self.num_envs, np.int64)   # each env's last reset seed
         self._fresh = np.zeros(self.num_envs, bool)             # reset, not stepped since
 
-    def start(self, checkpoint: Checkpoint | None) -> None:
-        """Reset every env; on resume, first load the buffer, the sampling RNG and the seeds of
-        episodes that had not started yet (``checkpoint`` as returned by ``run.start``)."""
+    def start(self, checkpoint: Checkpoint | None, exploration: NoisyExploration | None = None) -> None:
+        """Reset every env; on resume, first load the buffer, the sampling RNG, the update counts,
+        the ``exploration`` noise and the seeds of episodes that had not started yet
+        (``checkpoint`` as returned by ``run.start``). The exploration's state is saved with the
+        collector's from then on."""
+        self.exploration = exploration
         everyone = np.ones(self.num_envs, bool)
-        if checkpoint is None:
+        trainer = (checkpoint.state.get("trainer") or {}) if checkpoint is not None else {}
+        if "replay" not in trainer:
+            # A fresh run, or one resumed from its step-0 checkpoint, which is saved before the
+            # collector exists: the RNGs are as the fresh run had them, so it starts the same way.
             self._reset(everyone, self.run.reset_seeds(everyone))
             return
-        trainer = checkpoint.state["trainer"]
         self.buffer.load_state(checkpoint.tensors, trainer["replay"])
         self.sample_rng.bit_generator.state = trainer["sample_rng"]
+        self.updates, self._updates_owed = int(trainer.get("updates", 0)), float(trainer.get("updates_owed", 0.0))
+        if exploration is not None and "exploration" in trainer:
+            exploration.load_state(trainer["exploration"])
         fresh = np.asarray(trainer.get("fresh", [False] * self.num_envs), bool)[: self.num_envs]
         old_seeds = trainer.get("reset_seeds", [0] * self.num_envs)
         new_seeds = iter(self.run.reset_seeds(~fresh))
@@ -133,8 +143,12 @@ class ReplayCollector:
     def state(self) -> tuple[dict[str, torch.Tensor], dict]:
         """(tensors, JSON state) for a checkpoint: the replay buffer, the sampling RNG, the seeds."""
         tensors, meta = self.buffer.state()
-        return tensors, {"replay": meta, "sample_rng": self.sample_rng.bit_generator.state,
-                         "reset_seeds": self._reset_seeds.tolist(), "fresh": self._fresh.tolist()}
+        state = {"replay": meta, "sample_rng": self.sample_rng.bit_generator.state, "updates": self.updates,
+                 "updates_owed": self._updates_owed, "reset_seeds": self._reset_seeds.tolist(),
+                 "fresh": self._fresh.tolist()}
+        if self.exploration is not None:
+            state["exploration"] = self.exploration.state()
+        return tensors, state
 
     def obs_tensor(self) -> torch.Tensor:
         return torch.as_tensor(self.obs, device=self.run.device)
@@ -166,6 +180,7 @@ class ReplayCollector:
         self._updates_owed += self.hp.utd * self.num_envs
         while self._updates_owed >= 1:
             self._updates_owed -= 1
+            self.updates += 1
             yield self.buffer.sample(self.hp.batch_size, self.sample_rng)
 
     def close(self) -> None:
@@ -225,3 +240,12 @@ class NoisyExploration:
 
     def end_episodes(self, done: np.ndarray) -> None:
         self.noise.reset(done)
+
+    def state(self) -> dict:
+        """The noise's RNG and (Ornstein-Uhlenbeck) process, so a resumed run draws what it would have."""
+        return {"rng": self.noise.rng.bit_generator.state, "x": getattr(self.noise, "x", np.zeros(0)).tolist()}
+
+    def load_state(self, state: dict) -> None:
+        self.noise.rng.bit_generator.state = state["rng"]
+        if hasattr(self.noise, "x"):
+            self.noise.x[:] = np.asarray(state["x"], dtype=self.noise.x.dtype).reshape(self.noise.x.shape)

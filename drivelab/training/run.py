@@ -50,6 +50,7 @@ import numpy as np
 import torch
 
 from drivelab.config import TrainConfig
+from drivelab.errors import kill_point
 from drivelab.training.checkpoint import Checkpoint, restore
 from drivelab.training.episodes import EpisodeTracker
 from drivelab.training.run_checkpoints import ExtraState, RunCheckpoints
@@ -105,6 +106,7 @@ class Run:
             restore(self._resume_from, modules, optimizers)
             return self._resume_from
         self._save()
+        kill_point("after-first-checkpoint")
         return None
 
     def note_env_restart(self, total: int) -> None:

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from drivelab.config import TrainConfig, save_config
-from drivelab.errors import DrivelabError
+from drivelab.errors import DrivelabError, kill_point
 
 
 def open_run_dir(cfg: TrainConfig) -> TextIO:
@@ -27,7 +27,8 @@ def open_run_dir(cfg: TrainConfig) -> TextIO:
     run_dir.mkdir(parents=True, exist_ok=True)
     lock = lock_run_dir(run_dir)
     remove_stale_temporaries(run_dir)
-    save_config(cfg, run_dir / "config.yaml")
+    kill_point("before-config")
+    save_config(cfg, run_dir / "config.yaml")  # atomic: the file is whole or absent
     return lock
 
 
@@ -58,8 +59,18 @@ def lock_run_dir(run_dir: Path) -> TextIO:
 
 
 def remove_stale_temporaries(run_dir: Path) -> None:
-    """Checkpoint directories half-written by a killed process (``checkpoints/.tmp_*``) and the
-    state of an evaluation that never finished (``checkpoints/.eval_pending``): with the lock
-    held, none of them can still be in use."""
-    for tmp in [*(run_dir / "checkpoints").glob(".tmp_*"), run_dir / "checkpoints" / ".eval_pending"]:
+    """What a killed process left half-done: checkpoint directories half-written
+    (``checkpoints/.tmp_*``), the state of an evaluation that never finished
+    (``checkpoints/.eval_pending``), a checkpoint set aside while its replacement was moved in
+    (``checkpoints/.old_*``: put back if the replacement is missing) and a half-written config.
+    With the lock held, none of them can still be in use."""
+    root = run_dir / "checkpoints"
+    for tmp in [*root.glob(".tmp_*"), root / ".eval_pending"]:
         shutil.rmtree(tmp, ignore_errors=True)
+    for old in root.glob(".old_*"):  # killed while replacing a checkpoint (e.g. best): keep the old one
+        target = root / old.name[len(".old_"):].rsplit("_", 1)[0]
+        if target.exists() or target.name.startswith("."):
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(old, target)
+    (run_dir / ".config.yaml.tmp").unlink(missing_ok=True)
