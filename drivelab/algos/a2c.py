@@ -21,10 +21,10 @@ import torch
 
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
-from drivelab.training.losses import explained_variance, policy_gradient_loss, value_loss
+from drivelab.training.losses import (explained_variance, gradient_step, linear_decay, policy_gradient_loss,
+                                     set_learning_rate, value_loss)
 from drivelab.training.nets import ActorCritic, limit_log_std
 from drivelab.training.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
-from drivelab.training.optim import gradient_step, linear_decay, set_learning_rate
 from drivelab.training.run import Run
 
 

@@ -17,11 +17,10 @@ import torch
 
 from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
-from drivelab.training.losses import deterministic_actor_loss, saturated_share
+from drivelab.training.losses import deterministic_actor_loss, gradient_step, saturated_share
 from drivelab.training.nets import OffPolicyAgent, make_target, polyak_update
 from drivelab.training.offpolicy import (NoisyExploration, NoisyExplorationParams, Optimizers, ReplayCollector,
                                         make_optimizers)
-from drivelab.training.optim import gradient_step
 from drivelab.training.run import Run
 
 

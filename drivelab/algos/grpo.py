@@ -43,11 +43,10 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from drivelab.config import EnvConfig, TrainConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
-from drivelab.training.losses import approx_kl, clipped_surrogate_loss
+from drivelab.training.losses import approx_kl, clipped_surrogate_loss, gradient_step, linear_decay, set_learning_rate
 from drivelab.training.nets import ActorCritic, PolicyNetParams, limit_log_std
 from drivelab.training.returns import group_relative_advantages, group_relative_step_advantages, reward_to_go
 from drivelab.training.rollout import EpisodeStorage
-from drivelab.training.optim import gradient_step, linear_decay, set_learning_rate
 from drivelab.training.run import Run
 
 

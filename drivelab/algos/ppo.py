@@ -25,10 +25,10 @@ import torch
 
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
-from drivelab.training.losses import approx_kl, clipped_surrogate_loss, explained_variance, value_loss
+from drivelab.training.losses import (approx_kl, clipped_surrogate_loss, explained_variance, gradient_step,
+                                     linear_decay, set_learning_rate, value_loss)
 from drivelab.training.nets import ActorCritic, limit_log_std
 from drivelab.training.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
-from drivelab.training.optim import gradient_step, linear_decay, set_learning_rate
 from drivelab.training.run import Run
 
 

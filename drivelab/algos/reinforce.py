@@ -31,11 +31,10 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from drivelab.config import TrainConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
-from drivelab.training.losses import policy_gradient_loss
+from drivelab.training.losses import gradient_step, policy_gradient_loss
 from drivelab.training.nets import Policy, PolicyNetParams, limit_log_std
 from drivelab.training.returns import normalize, reward_to_go
 from drivelab.training.rollout import EpisodeStorage
-from drivelab.training.optim import gradient_step
 from drivelab.training.run import Run
 
 

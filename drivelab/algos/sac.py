@@ -27,7 +27,7 @@ from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.training.nets import OffPolicyAgent, make_target, polyak_update
 from drivelab.training.offpolicy import OffPolicyParams, ReplayCollector, make_optimizers
-from drivelab.training.optim import gradient_step
+from drivelab.training.losses import gradient_step
 from drivelab.training.run import Run
 
 

@@ -24,8 +24,8 @@ from torch import nn
 from torch.distributions import Categorical, Distribution, Independent, Normal
 
 from drivelab.errors import DrivelabError
+from drivelab.training.losses import linear_decay
 from drivelab.training.normalize import RunningMeanStd
-from drivelab.training.optim import linear_decay
 
 # Distribution argument checks cost tens of microseconds per call, i.e. a noticeable share of an
 # env step in a rollout loop; drivelab's networks produce valid parameters by construction.
