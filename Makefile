@@ -27,13 +27,13 @@ demo: install
 	$(BIN)/drivelab eval $(DEMO)/checkpoints/step_000000000000 $(DEMO) --policy metadrive-expert --policy random --episodes 10
 
 # Two pytest workers (pytest-xdist): most tests wait on subprocesses, servers or simulators part of
-# the time, and the slow learning tests run beside the rest. --dist loadgroup keeps the tests that
-# share a machine-wide resource (the Ray cluster: xdist_group "ray") on one worker.
+# the time, and the slow learning tests run beside the rest (worksteal balances them). The Ray
+# tests take a machine-wide lock for their cluster (tests/test_ray.py).
 test: install
-	$(BIN)/python -m pytest -q -n 2 --dist loadgroup --durations=12
+	$(BIN)/python -m pytest -q -n 2 --dist worksteal --durations=12
 
 test-fast: install
-	$(BIN)/python -m pytest -q -n 2 --dist loadgroup -m "not slow"
+	$(BIN)/python -m pytest -q -n 2 --dist worksteal -m "not slow"
 
 # The Duckietown extra lives in its own environment: its pins (extras/duckietown-constraints.txt)
 # would break the main one. Its OpenGL renderer needs a display: xvfb-run on headless machines.

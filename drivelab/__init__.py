@@ -11,8 +11,9 @@ Importing drivelab registers its Gymnasium ids (MetaDrive's scenario sets such a
 """
 
 from drivelab.envs.registration import register_envs
-
 from drivelab.version import __version__
+
+__all__ = ["__version__", "train", "load", "evaluate", "make_env", "build_config"]
 
 register_envs()
 
@@ -28,3 +29,8 @@ def __getattr__(name: str):
 
         return getattr(api, name)
     raise AttributeError(f"module 'drivelab' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    """The lazy API too, so that tab completion in a notebook shows ``drivelab.train`` & co."""
+    return sorted({*globals(), *_API})

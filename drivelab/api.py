@@ -161,7 +161,11 @@ def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | 
                               f"the latest checkpoint is intact: continue with drivelab train --resume {run.dir}") from exc
     finally:
         run.close(interrupted)
-    return TrainResult(run.dir, last_metrics(run.dir))
+    metrics = last_metrics(run.dir)
+    if not any(name.startswith("loss/") for name in metrics):
+        print(f"drivelab: warning: the run ended at step {run.step} without a logged update (no loss/* metric): "
+              "it has not learned; train for more steps", file=sys.stderr)
+    return TrainResult(run.dir, metrics)
 
 
 def _checkpoint_to_resume(cfg: TrainConfig) -> Checkpoint | None:

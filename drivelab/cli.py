@@ -73,7 +73,8 @@ def _train_parser(sub, epilog: str | None = None) -> None:
     p.add_argument("--num-envs", type=int, help="parallel environments")
     p.add_argument("--actions", metavar="NxM", help="discretise [steering, throttle] into N x M actions (env.action_grid)")
     p.add_argument("--mlflow", action="store_true", help="also track with MLflow")
-    p.add_argument("--mlflow-uri", help="MLflow tracking URI (default: a local store in the run directory)")
+    p.add_argument("--mlflow-uri", help="MLflow tracking URI (default: sqlite:///<run dir's parent>/mlflow.db, "
+                                        "e.g. runs/mlflow.db, shared by the runs beside it)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--ray-address", help="Ray cluster for --env.backend ray / --eval.backend ray: auto (the cluster "
                                          "on this machine), ray://HOST:10001, HOST:6379 (default: a local Ray instance)")

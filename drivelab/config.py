@@ -23,6 +23,7 @@ import dataclasses
 import difflib
 import math
 import os
+import sys
 from dataclasses import dataclass, field
 from collections.abc import Mapping
 from pathlib import Path
@@ -59,7 +60,8 @@ class EvalConfig:
 @dataclass
 class TrackConfig:
     mlflow: bool = False
-    # None: a local store inside the run directory (RUN_DIR/mlruns).
+    # None: the store shared by the runs beside this one, sqlite:///<run dir's parent>/mlflow.db
+    # (runs/mlflow.db for runs/NAME), with artifacts in <run dir's parent>/mlartifacts.
     mlflow_uri: str | None = None
     experiment: str = "drivelab"
 
@@ -302,7 +304,21 @@ def parse_config(data: dict, algo_params: Mapping[str, type], where: str = "conf
     cfg = _from_dict(TrainConfig, data, where)
     cfg.algo_params = _from_dict(algo_params[algo], params, f"{where} section '{algo}'")
     _validate(cfg)
+    _fit_heat_up(cfg)
     return cfg
+
+
+def _fit_heat_up(cfg: TrainConfig) -> None:
+    """An off-policy run shorter than its random-action heat-up (``learning_starts``, 5000 by
+    default) would end without one gradient step and look like a run that cannot learn: its
+    heat-up becomes a tenth of the run, and one line says so (the saved config holds the value)."""
+    heat_up = getattr(cfg.algo_params, "learning_starts", None)
+    if heat_up is None or heat_up < cfg.steps or cfg.steps == 0:
+        return
+    cfg.algo_params.learning_starts = max(1, cfg.steps // 10)
+    print(f"drivelab: warning: {cfg.algo}.learning_starts ({heat_up}) is not below steps ({cfg.steps}), so the run "
+          f"would never update: its heat-up is {cfg.algo_params.learning_starts} steps instead "
+          f"(set --{cfg.algo}.learning_starts to choose)", file=sys.stderr)
 
 
 def _validate(cfg: TrainConfig) -> None:

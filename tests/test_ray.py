@@ -4,6 +4,7 @@ joined by address like a remote one, stopped at the end."""
 from __future__ import annotations
 
 import csv
+import fcntl
 import json
 import os
 import shutil
@@ -20,10 +21,6 @@ import pytest
 
 ray = pytest.importorskip("ray")
 
-# `ray stop --force` stops every Ray process of the machine: all Ray tests run on one pytest-xdist
-# worker (make test uses --dist loadgroup), one cluster at a time.
-pytestmark = pytest.mark.xdist_group("ray")
-
 import drivelab  # noqa: E402
 from flaky_env import importable_env  # noqa: E402
 from drivelab.errors import DrivelabError  # noqa: E402
@@ -33,7 +30,19 @@ RAY = str(Path(sys.executable).with_name("ray"))
 
 @pytest.fixture(scope="module")
 def cluster():
-    """The address of a fresh one-node Ray cluster (4 logical CPUs, no dashboard, no token auth)."""
+    """The address of a fresh one-node Ray cluster (4 logical CPUs, no dashboard, no token auth).
+
+    `ray stop --force` stops every Ray process of the machine, so the pytest-xdist workers take
+    turns: each holds a machine-wide lock while its cluster lives (the other waits for it)."""
+    lock = open(Path(tempfile.gettempdir()) / "drivelab-tests-ray.lock", "w")
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    try:
+        yield from _cluster()
+    finally:
+        lock.close()
+
+
+def _cluster():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]

@@ -9,11 +9,13 @@ the same way wherever it is.
 from __future__ import annotations
 
 import dataclasses
+import shutil
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors.torch import load_file, save_file
 
 from drivelab.algos import ALGORITHMS, AlgoSpec
 from drivelab.config import EnvConfig, TrainConfig, parse_config
@@ -130,9 +132,25 @@ class TrainedPolicy:
         action = action.cpu().numpy()
         return action[0] if single else action
 
+    def predict(self, obs, state=None, episode_start=None, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        """Stable-Baselines3's signature: ``(action, None)`` (drivelab's policies keep no
+        recurrent state; ``state`` and ``episode_start`` are accepted and ignored)."""
+        return self.act(obs, deterministic=deterministic), None
+
     def to_env(self, action: np.ndarray) -> np.ndarray:
         """Identity: ``act`` already returns the simulator's action (the evaluation loop's protocol)."""
         return action
+
+    def save(self, path: str | Path) -> Path:
+        """Write the policy alone (its weights and observation statistics, without optimiser
+        state or replay buffer) with its checkpoint's ``state.json`` (config, step) into the
+        directory ``path``, which ``drivelab.load`` reads back."""
+        out = Path(path)
+        out.mkdir(parents=True, exist_ok=True)
+        tensors = load_file(str(self.checkpoint / "tensors.safetensors"))
+        save_file({k: v for k, v in tensors.items() if k.startswith("module/policy/")}, str(out / "tensors.safetensors"))
+        shutil.copyfile(self.checkpoint / "state.json", out / "state.json")
+        return out
 
     def export(self, out: str | Path, fmt: str = "onnx") -> Path:
         """Write the deterministic policy as ONNX or TorchScript, with ``policy.json``, into ``out``."""
