@@ -31,7 +31,7 @@ RUNS = {
     "td3": ["--algo", "td3", "--env", "Pendulum-v1", "--num-envs", "1", "--steps", "800", "--td3.learning_starts", "200",
             "--td3.hidden", "[16,16]", "--td3.batch_size", "32"],
 }
-COMMON = ["--seed", "3", "--checkpoint_every", "400", "--eval.every", "400", "--eval.episodes", "2",
+COMMON = ["--seed", "3", "--checkpoint_every", "400", "--eval.every", "400", "--eval.episodes", "1",
           "--no-progress", "--resume-if-exists"]
 
 # phase -> (which time it is reached, the step of the checkpoint the requeued run continues from)
