@@ -1,4 +1,15 @@
-"""On-policy training throughput against the env alone and against Stable-Baselines3, as JSON.
+"""Training throughput against the env alone (and, for PPO, against Stable-Baselines3), as JSON.
+
+For an off-policy config (DDPG, TD3, SAC; e.g. configs/drive.yaml) the contenders are
+``drivelab`` (the config as it is: with ``act_in_workers`` the env workers step while the learner
+updates) and ``drivelab_sync`` (the same config with the trainer stepping the envs and updating in
+turn), each against ``raw`` measured just before it; their steady speed is measured after the
+heat-up (``learning_starts``), and the learner's gradient steps/s (``*_updates_per_s``) are
+the stored env steps/s times ``utd``:
+
+    python benchmarks/throughput.py --config configs/drive.yaml --num-envs 1 2 --steps 40000 --repeats 1 --out throughput.json
+
+For PPO:
 
 For each number of env processes N (default 1, 2 and 4), on the env of a PPO config:
 
@@ -73,10 +84,15 @@ def steady_steps_per_second(rows: list[tuple[int, float]]) -> float:
     return (step1 - step0) / (time1 - time0)
 
 
+def is_offpolicy(data: dict) -> bool:
+    return hasattr(build_config(data).algo_params, "learning_starts")
+
+
 def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int,
                    checkpoint: Path | None = None) -> float:
-    """Steady steps/s of drivelab's PPO; from ``checkpoint`` (a checkpoint directory of a run of
-    this config) it continues that run for ``steps`` steps instead of starting afresh."""
+    """Steady steps/s of drivelab's training with this config (after the heat-up for an off-policy
+    one); from ``checkpoint`` (a checkpoint directory of a run of this config) it continues that
+    run for ``steps`` steps instead of starting afresh."""
     data = copy.deepcopy(data)
     set_dotted(data, "env.num_envs", num_envs)
     set_dotted(data, "env.step_groups", groups)
@@ -87,12 +103,17 @@ def drivelab_speed(data: dict, num_envs: int, groups: int | None, steps: int,
         set_dotted(data, "eval.every", 0)
         set_dotted(data, "checkpoint_every", 10**9)
         cfg = build_config(data)
-        cfg.log_every = cfg.algo_params.num_steps * num_envs   # one row per iteration
+        hp = cfg.algo_params
+        heat_up = getattr(hp, "learning_starts", 0)
+        cfg.steps += heat_up
+        # one row per iteration (per chunk of the env workers, or 64 vector steps off-policy)
+        cfg.log_every = num_envs * (hp.num_steps if not heat_up else hp.chunk_steps if hp.act_in_workers else 64)
         if checkpoint:
             shutil.copytree(checkpoint, run_dir / "checkpoints" / checkpoint.name)
         train(cfg, progress=False, resume=checkpoint is not None)
         with open(Path(cfg.run_dir) / "metrics.csv") as f:
-            rows = [(int(r["step"]), float(r["time"])) for r in csv.DictReader(f) if r["name"] == "perf/steps_per_s"]
+            rows = [(int(r["step"]), float(r["time"])) for r in csv.DictReader(f)
+                    if r["name"] == "perf/steps_per_s" and int(r["step"]) >= heat_up]
     return steady_steps_per_second(rows)
 
 
@@ -148,7 +169,7 @@ def main() -> None:
     parser.add_argument("--sb3-threads", type=int, default=1, help="torch threads for SB3 (collection and update)")
     parser.add_argument("--update-threads", type=int, help="also measure drivelab with this update_threads "
                         "(drivelab_update_threads)")
-    parser.add_argument("--skip", nargs="*", default=[], choices=["drivelab", "drivelab_groups", "sb3",
+    parser.add_argument("--skip", nargs="*", default=[], choices=["drivelab", "drivelab_groups", "drivelab_sync", "sb3",
                                                                    "drivelab_update_threads"])
     parser.add_argument("--from-checkpoint", metavar="CKPT",
                         help="drivelab's contenders continue this checkpoint (or run directory) of a run of --config "
@@ -169,12 +190,19 @@ def main() -> None:
     tuned = copy.deepcopy(data)  # drivelab's contenders: the config with --set applied
     apply_overrides(tuned, args.set)
     trainer_steps = copy.deepcopy(tuned)  # step groups are the trainer's way of stepping the envs
-    set_dotted(trainer_steps, "ppo.act_in_workers", False)
+    set_dotted(trainer_steps, f"{data.get('algo', 'ppo')}.act_in_workers", False)
     contenders = {
         "drivelab": lambda n: drivelab_speed(tuned, n, None, args.steps, checkpoint=checkpoint),
         "drivelab_groups": lambda n: drivelab_speed(trainer_steps, n, n, args.steps, checkpoint=checkpoint),
         "sb3": lambda n: sb3_speed(data, n, args.steps, args.sb3_threads),
     }
+    offpolicy = is_offpolicy(data)
+    if offpolicy:  # the learner beside the env workers, and in turn with them
+        algo = data["algo"]
+        synchronous = copy.deepcopy(tuned)
+        set_dotted(synchronous, f"{algo}.act_in_workers", False)
+        contenders = {"drivelab": contenders["drivelab"],
+                      "drivelab_sync": lambda n: drivelab_speed(synchronous, n, None, args.steps)}
     if args.update_threads:
         contenders["drivelab_update_threads"] = lambda n: drivelab_speed({**tuned, "update_threads": args.update_threads},
                                                                          n, None, args.steps, checkpoint=checkpoint)
@@ -197,13 +225,15 @@ def main() -> None:
                 pairs.append(pair)
             row["pairs"][name] = pairs
             row[name] = statistics.median(p["trained"] for p in pairs)
+            if offpolicy:
+                row[f"{name}_updates_per_s"] = row[name] * build_config(tuned).algo_params.utd
             for ceiling in ("raw", "raw_groups", "acting"):
                 if ceiling in pairs[0]:
                     row[f"{name}_vs_{ceiling}"] = statistics.median(p["trained"] / p[ceiling] for p in pairs)
         row["raw"] = statistics.median(p["raw"] for pairs in row["pairs"].values() for p in pairs)
         print(json.dumps({k: v for k, v in row.items() if k != "pairs"}), flush=True)
         results.append(row)
-    report({"benchmark": "onpolicy-throughput", "config": args.config, "steps": args.steps,
+    report({"benchmark": "offpolicy-throughput" if offpolicy else "onpolicy-throughput", "config": args.config, "steps": args.steps,
             "from_checkpoint": str(checkpoint) if checkpoint else None, "overrides": args.set,
             "repeats": args.repeats, "sb3_threads": args.sb3_threads, "results": results}, args.out)
 

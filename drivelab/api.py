@@ -24,7 +24,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -40,10 +40,11 @@ from drivelab.errors import DrivelabError, TrainingCrashed
 from drivelab.tools.policies import (  # noqa: F401  (re-exported: the API's loading and evaluation)
     TrainedPolicy, baseline_env, build_config, checkpoint_config, evaluate_baseline, evaluate_checkpoint, load,
     load_policy, policy_from_checkpoint)
+from drivelab.tools.drivers import model_card, shipped_drivers  # noqa: F401  (re-exported: the shipped drivers)
 from drivelab.training.checkpoint import Checkpoint, checkpoint_step, list_checkpoints, load_checkpoint
 from drivelab.training.evaluation import EvalResult, play, run_episodes  # noqa: F401  (EvalResult re-exported)
 from drivelab.training.plots import last_metrics
-from drivelab.training.run import Run
+from drivelab.training.run import Callback, Run, RunEvent  # noqa: F401  (RunEvent re-exported)
 from drivelab.version import __version__
 
 
@@ -86,10 +87,11 @@ class TrainResult(NamedTuple):
     metrics: dict[str, float]     # the last logged value of each metric (episode/*, loss/*, eval/*, perf/*)
 
 
-def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | None = None, *,
+def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | Callable[..., gym.Env] | None = None, *,
           steps: int | None = None, seed: int | None = None, num_envs: int | None = None,
           run_dir: str | Path | None = None, config: str | Path | None = None, resume: bool | str = False,
-          progress: bool = True, algorithms: Mapping[str, AlgoSpec] = ALGORITHMS, **overrides: Any) -> TrainResult:
+          progress: bool = True, callback: Callback | None = None, algorithms: Mapping[str, AlgoSpec] = ALGORITHMS,
+          **overrides: Any) -> TrainResult:
     """Train an agent and return its run directory and final metrics.
 
     Either a :class:`TrainConfig`, or an algorithm name with an env (an id, or the ``env``
@@ -105,6 +107,11 @@ def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | 
     ``resume="auto"`` is the command to requeue on a preemptible cluster: it starts the run
     when ``run_dir`` holds none yet and continues it otherwise (``--resume-if-exists``).
 
+    ``callback(event)`` hears every log, evaluation and checkpoint (a :class:`RunEvent`: its
+    ``kind``, ``step``, ``metrics`` and checkpoint ``path``); when it returns False the run
+    stops cleanly, with a checkpoint at the step reached (early stopping, say, on
+    ``event.kind == "eval" and event.metrics["success_rate"] >= 0.8``).
+
     An unexpected exception inside training leaves the latest checkpoint as it was, writes its
     traceback to ``RUN/error.log`` and is raised as :class:`~drivelab.errors.TrainingCrashed`.
     """
@@ -114,6 +121,7 @@ def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | 
         if requeue:
             _check_requeue(cfg)
     else:
+        env = env_id_of(env) if env is not None and not isinstance(env, (str, Mapping)) else env
         arguments = {"algo": algo, "env": {"id": env} if isinstance(env, str) else env, "steps": steps, "seed": seed,
                      "run_dir": None if run_dir is None else str(run_dir), **overrides, "env.num_envs": num_envs}
         arguments = {key: value for key, value in arguments.items() if value is not None}
@@ -142,7 +150,7 @@ def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | 
         from drivelab.envs.ray_backend import connect
 
         connect(cfg.ray_address)
-    run = Run(cfg, resume_from=checkpoint, progress=progress)
+    run = Run(cfg, resume_from=checkpoint, progress=progress, callback=callback)
     interrupted = False
     try:
         with stop_signals():
@@ -168,6 +176,21 @@ def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | 
     return TrainResult(run.dir, metrics)
 
 
+def env_id_of(env: Any) -> str:
+    """An env class, or a function that returns an env, as the ``"module:Name"`` id that env
+    workers (and later ``eval``, ``--resume``, ``export``) import it by."""
+    if isinstance(env, gym.Env):
+        raise DrivelabError(f"env: pass the class {type(env).__name__} (or a function that builds the env), not an "
+                            "instance: each env worker builds its own")
+    module, name = getattr(env, "__module__", None), getattr(env, "__qualname__", "")
+    if not callable(env) or module is None or "." in name or "<" in name:
+        raise DrivelabError(f"env: expected an id, a config section, an env class or a module-level function, got {env!r}")
+    if module == "__main__":
+        raise DrivelabError(f"env: {name} is defined in __main__, which env worker processes cannot import; "
+                            "move it into a module (my_env.py) and pass it, or 'my_env:" + name + "'")
+    return f"{module}:{name}"
+
+
 def _checkpoint_to_resume(cfg: TrainConfig) -> Checkpoint | None:
     """The latest checkpoint of ``cfg.run_dir``, checked against ``cfg``; None when the run was
     stopped before its first checkpoint after step 0: nothing was trained, and starting afresh
@@ -186,7 +209,7 @@ def _checkpoint_to_resume(cfg: TrainConfig) -> Checkpoint | None:
         raise DrivelabError(f"run {cfg.run_dir} is already at step {checkpoint.step} >= steps {cfg.steps}; "
                             "pass a larger --steps to continue")
     saved = checkpoint.state.get("config")
-    differences = experiment_differences(config_to_dict(cfg), saved) if isinstance(saved, dict) else []
+    differences = experiment_differences(config_to_dict(cfg), with_defaults(saved)) if isinstance(saved, dict) else []
     if differences:
         raise DrivelabError(f"{Path(cfg.run_dir) / 'config.yaml'} does not match the config saved in {checkpoint.path} "
                             f"(fields {', '.join(differences[:5])}); it was edited or damaged: restore it, or "
@@ -243,6 +266,15 @@ def train_config(overrides: Mapping[str, Any], config: str | Path | None = None,
     return build_config(merge_overrides(data, overrides), where=f"config of run {resume}", algorithms=algorithms)
 
 
+def with_defaults(saved: dict) -> dict:
+    """A saved config as data with today's defaults for the fields added since it was written
+    (as is if it no longer parses: the comparison then names what differs)."""
+    try:
+        return config_to_dict(build_config(saved))
+    except DrivelabError:
+        return saved
+
+
 def _check_requeue(cfg: TrainConfig) -> None:
     """A requeued command must describe the run its directory holds (if it holds one)."""
     if cfg.run_dir is None:
@@ -250,8 +282,7 @@ def _check_requeue(cfg: TrainConfig) -> None:
     saved = Path(cfg.run_dir) / "config.yaml"
     if not saved.is_file():
         return
-    data = read_yaml(saved)
-    differences = experiment_differences(config_to_dict(cfg), data)
+    differences = experiment_differences(config_to_dict(cfg), with_defaults(read_yaml(saved)))
     if differences:
         raise DrivelabError(f"run directory {cfg.run_dir} holds another experiment: {', '.join(differences[:5])} "
                             f"differ from {saved}; use another --run-dir")

@@ -99,7 +99,9 @@ def _eval_parser(sub) -> None:
     p = sub.add_parser("eval", help="evaluate checkpoints, runs' latest checkpoints, or baseline policies",
                        description="Evaluate deterministically; several paths and --policy values give one table, "
                                    "all on the same env and seeds.")
-    p.add_argument("path", nargs="*", help="run directory or checkpoint directory (e.g. RUN/checkpoints/best)")
+    p.add_argument("path", nargs="*", help="run directory, checkpoint directory (e.g. RUN/checkpoints/best) or "
+                                           "a shipped driver's name (drivelab models)")
+    p.add_argument("--card", action="store_true", help="show the model card of each driver given, do not evaluate")
     p.add_argument("--policy", action="append", default=[], choices=BASELINES,
                    help="also evaluate a reference policy (repeatable); on --env, else the checkpoints' env, "
                         "else MetaDrive-validation-v0")
@@ -127,6 +129,7 @@ def build_parser(train_epilog: str | None = None) -> argparse.ArgumentParser:
     _eval_parser(sub)
     sub.add_parser("envs", help="list drivelab's MetaDrive env ids")
     sub.add_parser("configs", help="list the shipped configs (drivelab train --config NAME)")
+    sub.add_parser("models", help="list the trained drivers that ship with drivelab (drivelab eval NAME --card)")
     report = sub.add_parser("report", help="one self-contained HTML report of runs: curves, evaluation, video")
     report.add_argument("runs", nargs="+", metavar="RUN")
     report.add_argument("--out", help="HTML file (default: RUN/report.html for one run, report.html otherwise)")
@@ -217,6 +220,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise DrivelabError("drivelab eval needs a run or checkpoint directory, or --policy NAME for a baseline")
     kwargs = _env_kwargs(args.env_kwarg)
     args.path = [_local_run(path, args.mlflow_uri) for path in args.path]
+    if args.card:
+        print("\n\n".join(api.model_card(path) for path in args.path))
+        return 0
     if (args.video or args.video_dir) and len(args.path) + len(args.policy) != 1:
         raise DrivelabError("--video and --video-dir record one policy: give one path or one --policy")
     rows: list[dict[str, Any]] = []
@@ -333,6 +339,18 @@ def cmd_configs() -> int:
     return 0
 
 
+def cmd_models() -> int:
+    from drivelab.tools.drivers import CARD_METRICS, DRIVERS_DIR, read_card, shipped_drivers
+
+    for name in shipped_drivers():
+        card = read_card(DRIVERS_DIR / name)
+        mine = card.get("evaluation", {}).get("policies", {}).get(name, {})
+        numbers = ", ".join(f"{m} {mine[m]['mean']:.2f}" for m in CARD_METRICS[:1] + CARD_METRICS[-1:] if m in mine)
+        print(f"{name:<20}{card.get('training', {}).get('algo', '?'):<6}{card.get('summary', '')} ({numbers})")
+    print("(drivelab eval NAME --card shows a model card; drivelab.load(NAME) loads one)")
+    return 0
+
+
 def cmd_envs() -> int:
     from drivelab.envs.registration import TASKS, metadrive_ids
 
@@ -385,7 +403,7 @@ def main(argv: list[str] | None = None) -> None:
         else:
             if unknown:
                 parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-            code = {"eval": cmd_eval, "reward": cmd_reward, "export": cmd_export, "plot": cmd_plot, "report": cmd_report, "sweep": cmd_sweep, "configs": lambda a: cmd_configs()}.get(
+            code = {"eval": cmd_eval, "reward": cmd_reward, "export": cmd_export, "plot": cmd_plot, "report": cmd_report, "sweep": cmd_sweep, "configs": lambda a: cmd_configs(), "models": lambda a: cmd_models()}.get(
                 args.command, lambda a: cmd_envs())(args)
     except TrainingCrashed as exc:  # the traceback is in RUN/error.log
         _print_error(exc, exc.__cause__, args.debug)

@@ -23,6 +23,7 @@ import dataclasses
 import difflib
 import math
 import os
+import re
 import sys
 from dataclasses import dataclass, field
 from collections.abc import Mapping
@@ -82,7 +83,7 @@ class TrainConfig:
     # a 2-core machine: PPO's update ~1.3x faster). Other float results, so another random stream
     # than with None; keep None when other jobs share the cores.
     update_threads: int | None = None
-    device: str = "cpu"
+    device: str = "cpu"               # cpu, cuda[:N], or auto (cuda when torch sees one)
     checkpoint_every: int = 50_000
     keep_checkpoints: int = 3
     # Episodes in the recent-return window (progress bar and logged means).
@@ -341,16 +342,22 @@ def _validate(cfg: TrainConfig) -> None:
         ("eval.episodes", cfg.eval.episodes >= 1, "must be >= 1"),
         ("eval.num_envs", cfg.eval.num_envs >= 1, "must be >= 1"),
         ("eval.backend", cfg.eval.backend in ("local", "ray"), "must be local or ray"),
-        ("device", cfg.device == "cpu" or cfg.device.startswith("cuda"), "must be cpu or cuda[:N]"),
+        ("device", cfg.device in ("cpu", "auto") or re.fullmatch(r"cuda(:\d+)?", cfg.device) is not None,
+         "must be cpu, cuda[:N] or auto"),
     ]
     for name, ok, message in checks:
         if not ok:
             raise DrivelabError(f"config field '{name}' {message}")
-    if cfg.device.startswith("cuda"):
+    if cfg.device != "cpu":  # the one place that decides the device: a run's tensors all follow cfg.device
         import torch
 
-        if not torch.cuda.is_available():
+        if cfg.device == "auto":
+            cfg.device = "cuda" if torch.cuda.is_available() else "cpu"
+        elif not torch.cuda.is_available():
             raise DrivelabError(f"config field 'device' is {cfg.device!r}, but this torch build sees no CUDA device; use cpu")
+        elif int(cfg.device.partition(":")[2] or 0) >= torch.cuda.device_count():
+            raise DrivelabError(f"config field 'device' is {cfg.device!r}, but this machine has "
+                                f"{torch.cuda.device_count()} CUDA device(s)")
     if cfg.run_dir is not None:
         _check_writable(Path(cfg.run_dir))
     _check_hyperparameters(cfg.algo, cfg.algo_params)

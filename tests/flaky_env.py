@@ -9,6 +9,10 @@ CartPole whose ``step`` raises, kills its process, or hangs once, at step ``at_s
 worker's life, the first time it runs with a given ``marker`` file (the file records that the
 failure happened, so the restarted worker behaves); or, with ``fail="nan"``, whose rewards are
 NaN from ``at_step`` on.
+
+``flaky_env:Tally-v0`` is a bookkeeping env for the replay collectors: its observation names the
+episode and the step within it, so a test can check that every transition was stored once, in
+order, with its own action and reward (and it fails like ``Flaky-v0`` when given a ``marker``).
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import time
 from pathlib import Path
 
 import gymnasium as gym
+import numpy as np
 
 
 def importable_env(env: dict[str, str] | None = None) -> dict[str, str]:
@@ -48,6 +53,46 @@ class FlakyEnv(gym.Wrapper):
             time.sleep(3600)  # hang
         return self.env.step(action)
 
+
+class TallyEnv(gym.Env):
+    """obs = (episode id, t, 0); reward = 10 t + a for action a at step t; an episode of 3-11
+    steps ends terminated (even ids) or truncated (odd ids). Raises once at the worker's
+    ``at_step``-th step when ``marker`` names a file that does not exist yet."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def __init__(self, at_step: int = 0, marker: str = "", render_mode: str | None = None):
+        self.at_step, self.marker = at_step, Path(marker) if marker else None
+        self._steps, self.episode, self.t, self.length = 0, 0, 0, 0
+
+    def _obs(self) -> np.ndarray:
+        return np.array([self.episode, self.t, 0.0], np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.episode, self.t = int(self.np_random.integers(1, 2**24)), 0
+        self.length = int(self.np_random.integers(3, 12))
+        return self._obs(), {}
+
+    def step(self, action):
+        self._steps += 1
+        if self._steps == self.at_step and self.marker is not None and not self.marker.exists():
+            self.marker.write_text("raise")
+            raise RuntimeError("the simulator crashed (on purpose)")
+        reward = 10.0 * self.t + float(action[0])
+        self.t += 1
+        ended = self.t >= self.length
+        return self._obs(), reward, ended and self.episode % 2 == 0, ended and self.episode % 2 == 1, {}
+
+
+def make_tally(**kwargs) -> TallyEnv:
+    """A factory, as the API accepts one."""
+    return TallyEnv(**kwargs)
+
+
+if "Tally-v0" not in gym.registry:
+    gym.register(id="Tally-v0", entry_point=TallyEnv)
 
 if "Flaky-v0" not in gym.registry:
     gym.register(id="Flaky-v0", entry_point=FlakyEnv)

@@ -259,7 +259,8 @@ BAD_VALUES = {
     "--env.kwargs.no_such_option": st.integers(),
     "--eval.every": st.integers(max_value=-1),
     "--eval.episodes": st.integers(max_value=0),
-    "--device": st.one_of(st.just("cuda"), st.just("cuda:3"), _text),
+    # bad on every machine: no GPU has index 99, and a CPU-only torch refuses cuda outright
+    "--device": st.one_of(st.just("cuda:99"), st.just("gpu"), _text),
     "--log_every": st.integers(max_value=0),
     "--checkpoint_every": st.integers(max_value=0),
     "--max_minutes": st.floats(max_value=0.0, allow_nan=False),

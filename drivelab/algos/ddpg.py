@@ -67,7 +67,7 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch
 
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    collector = ReplayCollector(cfg.env, hp, run, seed=cfg.seed)
+    collector = ReplayCollector.from_config(cfg, run, build_policy, exploration=NoisyExploration)
     explore = NoisyExploration(hp, collector.num_envs, collector.act_space.shape[0], seed=cfg.seed)
     agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
     target = make_target(agent)
@@ -77,13 +77,14 @@ def train(cfg: TrainConfig, run: Run) -> None:
     collector.start(run.start({"policy": agent, "target": target}, opt._asdict(), policy=agent), exploration=explore)
     try:
         while not run.done:
-            heat_up = run.step < hp.learning_starts     # uniform random actions until then
-            action = collector.random_actions() if heat_up else explore(agent, collector.obs_tensor(), run.step)
-            done = collector.step(agent, action)
-            explore.end_episodes(done)                  # the OU process restarts with each episode
-            for batch in collector.batches():           # utd gradient steps per env step
+            # 1. Act: uniform random during the heat-up, then mu(s) + exploration noise (the OU
+            #    process restarts with each episode); with act_in_workers the env workers play a
+            #    chunk with a copy of the actor while 2. runs.
+            steps = collector.collect(agent)
+            # 2. utd gradient steps per env step stored.
+            for batch in collector.batches():
                 with run.timing.update:
                     run.record(update(agent, target, opt, batch, hp))
-            run.end_iteration(collector.num_envs, extra_state=collector.state)
+            run.end_iteration(steps, extra_state=collector.state)
     finally:
         collector.close()

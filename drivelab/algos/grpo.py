@@ -207,7 +207,7 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: GroupBat
     over the B recorded steps; returns the means of the logged statistics (0-d tensors)."""
     size = batch.obs.shape[0]
     minibatch = max(1, size // hp.num_minibatches)
-    stats = torch.zeros(3)
+    stats = torch.zeros(3, device=batch.obs.device)
     steps = 0
     for _ in range(hp.update_epochs):
         order = torch.randperm(size)

@@ -60,7 +60,7 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutB
     logged statistics as 0-d tensors."""
     size = batch.obs.shape[0]
     minibatch = max(1, size // hp.num_minibatches)
-    stats = torch.zeros(5)  # policy loss, value loss, entropy, approx kl, clip fraction (summed)
+    stats = torch.zeros(5, device=batch.obs.device)  # policy loss, value loss, entropy, approx kl, clip fraction (summed)
     steps = epochs = 0
     for epochs in range(1, hp.update_epochs + 1):
         order = torch.randperm(size)
@@ -87,7 +87,7 @@ def update(agent: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutB
     mean = stats / steps
     return {"loss/policy": mean[0], "loss/value": mean[1], "loss/entropy": mean[2], "loss/approx_kl": mean[3],
             "loss/clip_fraction": mean[4], "loss/explained_variance": explained_variance(batch.values, batch.returns),
-            "loss/epochs": torch.tensor(float(epochs))}
+            "loss/epochs": torch.tensor(float(epochs), device=batch.obs.device)}
 
 
 def train(cfg: TrainConfig, run: Run) -> None:

@@ -26,7 +26,7 @@ import torch
 from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.training.nets import OffPolicyAgent, make_target, polyak_update
-from drivelab.training.offpolicy import OffPolicyParams, ReplayCollector, make_optimizers
+from drivelab.training.offpolicy import OffPolicyParams, PolicySampling, ReplayCollector, make_optimizers
 from drivelab.training.losses import gradient_step
 from drivelab.training.run import Run
 
@@ -111,7 +111,7 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, log_alpha: torch.Tenso
 
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    collector = ReplayCollector(cfg.env, hp, run, seed=cfg.seed)
+    collector = ReplayCollector.from_config(cfg, run, build_policy, exploration=PolicySampling)
     agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
     log_alpha = torch.nn.Parameter(torch.tensor(float(hp.init_alpha)).log().to(run.device))
     target_entropy = hp.target_entropy if hp.target_entropy is not None else -float(collector.act_space.shape[0])
@@ -123,21 +123,19 @@ def train(cfg: TrainConfig, run: Run) -> None:
         agent.compile_networks()
     resumed = run.start({"policy": agent, "target": target, "alpha": torch.nn.ParameterDict({"log_alpha": log_alpha})},
                         opt._asdict(), policy=agent)
-    collector.start(resumed)
-    updates = 0
+    collector.start(resumed, exploration=PolicySampling(hp, collector.num_envs, collector.act_space.shape[0], cfg.seed))
     try:
         while not run.done:
             # 1. Act: uniform random during the heat-up, then a sample of the stochastic policy
-            #    (SAC explores with its own entropy-regularised policy, no added noise).
-            heat_up = run.step < hp.learning_starts
-            collector.step(agent, collector.random_actions() if heat_up else agent.act(collector.obs_tensor()).cpu().numpy())
+            #    (SAC explores with its own entropy-regularised policy, no added noise). With
+            #    act_in_workers the env workers play a chunk with a copy of the actor while 2. runs.
+            steps = collector.collect(agent)
             # 2. utd gradient steps per env step on uniform replay batches.
             for batch in collector.batches():
                 with run.timing.update:
                     run.record(update(agent, target, log_alpha, opt, batch, hp, target_entropy,
-                                      update_actor=updates % hp.actor_every == 0))
-                updates += 1
+                                      update_actor=(collector.updates - 1) % hp.actor_every == 0))
             # 3. Log, evaluate and checkpoint (with the replay buffer) when due.
-            run.end_iteration(collector.num_envs, extra_state=collector.state)
+            run.end_iteration(steps, extra_state=collector.state)
     finally:
         collector.close()

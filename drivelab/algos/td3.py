@@ -86,7 +86,7 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch
 
 def train(cfg: TrainConfig, run: Run) -> None:
     hp: Params = cfg.algo_params
-    collector = ReplayCollector(cfg.env, hp, run, seed=cfg.seed)
+    collector = ReplayCollector.from_config(cfg, run, build_policy, exploration=NoisyExploration)
     agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
     target = make_target(agent)
     opt = make_optimizers(agent, hp)
@@ -96,17 +96,15 @@ def train(cfg: TrainConfig, run: Run) -> None:
     collector.start(run.start({"policy": agent, "target": target}, opt._asdict(), policy=agent), exploration=explore)
     try:
         while not run.done:
-            # 1. Act: uniform random during the heat-up, then mu(s) + exploration noise.
-            if run.step < hp.learning_starts:
-                action = collector.random_actions()
-            else:
-                action = explore(agent, collector.obs_tensor(), run.step)
-            explore.end_episodes(collector.step(agent, action))
+            # 1. Act: uniform random during the heat-up, then mu(s) + exploration noise. In this
+            #    process one vector step; with act_in_workers the env workers play a chunk with
+            #    a copy of the actor while 2. runs (ReplayCollector).
+            steps = collector.collect(agent)
             # 2. Critic steps at the update-to-data ratio; the actor every policy_delay-th.
             for batch in collector.batches():
                 with run.timing.update:
                     run.record(update(agent, target, opt, batch, hp, update_actor=collector.updates % hp.policy_delay == 0))
             # 3. Log, evaluate and checkpoint (with the replay buffer) when due.
-            run.end_iteration(collector.num_envs, extra_state=collector.state)
+            run.end_iteration(steps, extra_state=collector.state)
     finally:
         collector.close()

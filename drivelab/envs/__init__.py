@@ -2,7 +2,8 @@
 
 Any registered Gymnasium id works (``CartPole-v1``, ``LunarLander-v3``, ...), plus drivelab's
 MetaDrive ids (see :mod:`drivelab.envs.registration`), plus Gymnasium's ``"module:EnvId"`` form
-for envs registered by importing ``module`` (e.g. ``flaky_env:Flaky-v0`` in the tests).
+for envs registered by importing ``module`` (e.g. ``flaky_env:Flaky-v0`` in the tests), and
+``"module:EnvClass"`` for an env class that nobody registered (``my_env:Corridor``).
 """
 
 from __future__ import annotations
@@ -30,13 +31,15 @@ __all__ = ["EnvConfig", "make_env", "make_vector_env", "env_spaces", "DiscreteAc
            "metadrive_ids", "needs_own_process"]
 
 
-def _check_id(env_id: str) -> None:
+def _check_id(env_id: str) -> str:
+    """The registered id of ``env_id`` ("module:EnvId" and "module:EnvClass" resolved), or a one-line error."""
     register_envs()
     name = registered_id(env_id)  # "module:EnvId": imports the module, which registers EnvId
     if name not in gym.registry:
         close = difflib.get_close_matches(name, list(gym.registry), n=3)
         hint = f" (did you mean {', '.join(close)}?)" if close else ""
         raise DrivelabError(f"unknown env id '{env_id}'{hint}")
+    return name
 
 
 def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
@@ -51,7 +54,7 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
     ``render_mode="rgb_array"`` is for videos; ``wrapper`` goes on last (e.g. a baseline's, see
     :mod:`drivelab.tools.baselines`; a module-level class, so vector envs can pickle it).
     """
-    _check_id(cfg.id)
+    env_id = _check_id(cfg.id)
     in_worker = multiprocessing.parent_process() is not None
     if in_worker:
         # In an env worker, Ctrl-C is the trainer's to handle: it checkpoints and closes the
@@ -62,7 +65,7 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
     try:
-        env = gym.make(cfg.id, render_mode=render_mode, **kwargs)
+        env = gym.make(env_id, render_mode=render_mode, **kwargs)
     except DrivelabError:
         raise
     except (TypeError, ValueError, KeyError, AssertionError, gym.error.Error) as exc:

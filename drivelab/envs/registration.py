@@ -32,6 +32,8 @@ space):
 from __future__ import annotations
 
 import importlib
+import os
+import sys
 
 import gymnasium as gym
 
@@ -56,18 +58,43 @@ def metadrive_ids() -> list[str]:
 
 
 def registered_id(env_id: str) -> str:
-    """The id under which ``env_id`` is registered. Gymnasium's ``"module:EnvId"`` form names a
-    module whose import registers ``EnvId`` (as ``gym.make`` does, this imports it first), so envs
-    from outside drivelab need no entry in drivelab; other ids are returned as they are."""
+    """The id under which ``env_id`` is registered.
+
+    Gymnasium's ``"module:EnvId"`` form names a module whose import registers ``EnvId`` (as
+    ``gym.make`` does, this imports it first); ``"module:EnvClass"`` names an env class (or a
+    function that returns an env) in that module, which is registered here as
+    ``"module.EnvClass"``. Envs from outside drivelab thus need no entry in drivelab; the module
+    is looked up on ``sys.path`` and, failing that, in the current directory. Other ids are
+    returned as they are."""
     module, colon, name = env_id.rpartition(":")
     if not colon:
         return env_id
     try:
-        importlib.import_module(module)
+        imported = _import(module)
     except Exception as exc:  # any failure, reported in one line (ModuleNotFoundError, or the module's own)
         detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise DrivelabError(f"env id '{env_id}': could not import module '{module}' ({detail})") from None
-    return name
+    if name in gym.registry:
+        return name
+    entry = getattr(imported, name, None)
+    if entry is None or not callable(entry):
+        return name  # not registered by the module: the caller says so, with close matches
+    own_id = f"{module}.{name}"
+    if own_id not in gym.registry:
+        gym.register(id=own_id, entry_point=f"{module}:{name}")
+    return own_id
+
+
+def _import(module: str):
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        # A console script's sys.path lacks the current directory (python -m has it); spawned
+        # env workers inherit this process's sys.path, so they find the module too.
+        if exc.name != module.split(".")[0] or os.getcwd() in sys.path:
+            raise
+        sys.path.append(os.getcwd())
+        return importlib.import_module(module)
 
 
 def needs_own_process(env_id: str) -> bool:

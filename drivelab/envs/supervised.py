@@ -12,6 +12,7 @@ last observation as their final one. More than ``max_restarts`` restarts within
 
 from __future__ import annotations
 
+import multiprocessing
 import sys
 import warnings
 from collections import deque
@@ -76,6 +77,7 @@ class SupervisedVectorEnv(VectorEnv):
         self.restarts = 0
         self._steps = 0
         self._pending_error: Exception | None = None
+        self._queued_calls = 0           # call_queue calls whose results call_next has not read yet
         self._last_obs = None
         # True while actions or results are half sent or half read. A Ctrl-C (or SIGTERM, which
         # drivelab turns into one) there leaves gymnasium's pipes out of step: a worker may owe a
@@ -157,17 +159,47 @@ class SupervisedVectorEnv(VectorEnv):
         (they count towards the restart window): the results, or None when a worker raised, died
         or took longer than ``timeout``; the workers are then restarted (as for a failed step,
         within the restart budget) and every env needs a reset."""
+        self.call_queue(name, *args, steps=steps)
+        return self.call_next(timeout)
+
+    def call_queue(self, name: str, *args, steps: int = 1) -> None:
+        """Queue ``call(name, *args)`` in every worker without waiting for the calls queued
+        before it: a worker takes its calls in order, so it starts the next one as soon as it has
+        answered one (the off-policy workers play chunk after chunk while the learner updates).
+        :meth:`call_next` returns the results, oldest call first. ``steps`` as in
+        :meth:`call_or_restart`."""
         self._steps += steps
         self._mid_exchange = True
         try:
-            self.envs.call_async(name, *args)
-            with warnings.catch_warnings():
+            for pipe in self.envs.parent_pipes:
+                pipe.send(("_call", (name, args, {})))
+            self._queued_calls += 1
+        except Exception as exc:  # noqa: BLE001 - a dead worker
+            self._pending_error = exc
+
+    def call_next(self, timeout: float | None = None) -> tuple | None:
+        """The results of the oldest queued call, or None when a worker raised, died or took
+        longer than ``timeout``: the workers are then restarted and every queued call is dropped
+        (every env needs a reset)."""
+        try:
+            if self._pending_error is not None:
+                raise self._pending_error
+            results, successes = [], []
+            for index, pipe in enumerate(self.envs.parent_pipes):
+                if not pipe.poll(timeout):
+                    raise multiprocessing.TimeoutError(f"env worker {index} did not answer within {timeout} s")
+                result, success = pipe.recv()
+                results.append(result)
+                successes.append(success)
+            with warnings.catch_warnings():  # gymnasium re-prints the worker's traceback; we say it in one line
                 warnings.simplefilter("ignore")
-                results = self.envs.call_wait(timeout=timeout)
+                self.envs._raise_if_errors(successes)  # gymnasium's: raises the worker's own exception
+            self._queued_calls -= 1
         except Exception as exc:  # noqa: BLE001 - whatever the simulator raised, or a dead/hung worker
             self._restart(exc)
-            results = None
-        self._mid_exchange = False
+            results, self._queued_calls = None, 0
+        self._pending_error = None
+        self._mid_exchange = self._queued_calls > 0
         return results
 
     def call(self, name: str, *args, **kwargs):

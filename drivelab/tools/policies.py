@@ -22,6 +22,7 @@ from drivelab.config import EnvConfig, TrainConfig, parse_config
 from drivelab.envs import env_spaces
 from drivelab.errors import DrivelabError
 from drivelab.tools.baselines import baseline
+from drivelab.tools.drivers import check_observation_layout, resolve_policy_path
 from drivelab.tools.export import DeployedPolicy, export_policy, metadata
 from drivelab.training.checkpoint import Checkpoint, checkpoint_step, load_checkpoint, restore
 from drivelab.training.evaluation import EvalResult, play
@@ -46,15 +47,19 @@ def checkpoint_config(ckpt: Checkpoint, algorithms: Mapping[str, AlgoSpec] = ALG
 
 def policy_from_checkpoint(ckpt: Checkpoint, cfg: TrainConfig, env_cfg: EnvConfig,
                            algorithms: Mapping[str, AlgoSpec] = ALGORITHMS) -> torch.nn.Module:
-    """The trained policy, in eval mode, built for the spaces of ``env_cfg``."""
-    policy = algorithms[cfg.algo].build_policy(cfg, *env_spaces(env_cfg))
+    """The trained policy, in eval mode, built for the spaces of ``env_cfg`` (a driver with a
+    model card refuses an env whose observations it was not trained on)."""
+    spaces = env_spaces(env_cfg)
+    check_observation_layout(ckpt.path, spaces[0])
+    policy = algorithms[cfg.algo].build_policy(cfg, *spaces)
     restore(ckpt, {"policy": policy}, rng=False)
     return policy.eval()
 
 
 def load_policy(path: str | Path) -> tuple[torch.nn.Module, TrainConfig, Checkpoint]:
-    """The trained policy of a checkpoint (or a run's latest checkpoint), with its config."""
-    ckpt = load_checkpoint(path)
+    """The trained policy of a checkpoint (or a run's latest checkpoint, or a shipped driver's
+    name, see :mod:`drivelab.tools.drivers`), with its config."""
+    ckpt = load_checkpoint(resolve_policy_path(path))
     cfg = checkpoint_config(ckpt)
     return policy_from_checkpoint(ckpt, cfg, cfg.env), cfg, ckpt
 
@@ -67,9 +72,10 @@ def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None
     ``env_id`` evaluates on another env (e.g. train on ``MetaDrive-100envs-v0``, evaluate on
     ``MetaDrive-validation-v0``); the training env's kwargs are then dropped, as they may
     redefine that env's scenario range, and ``env_kwargs`` are used instead. A ``recorder``
-    (:class:`drivelab.training.video.Recorder`) films the episodes, on one env.
+    (:class:`drivelab.training.video.Recorder`) films the episodes, on one env. ``path`` may
+    also name a shipped driver (``drivelab-driver``).
     """
-    ckpt = load_checkpoint(path)
+    ckpt = load_checkpoint(resolve_policy_path(path))
     cfg = checkpoint_config(ckpt)
     env_cfg = cfg.env
     if env_id is not None and env_id != env_cfg.id:
@@ -159,6 +165,7 @@ class TrainedPolicy:
 
 
 def load(path: str | Path) -> TrainedPolicy:
-    """The trained policy of a run (its latest checkpoint), a checkpoint directory, or ``RUN/best``."""
+    """The trained policy of a run (its latest checkpoint), a checkpoint directory, ``RUN/best``,
+    or a shipped driver by name (``drivelab.load("drivelab-driver")``)."""
     policy, cfg, ckpt = load_policy(path)
     return TrainedPolicy(DeployedPolicy(policy, cfg.env), cfg, ckpt.path)

@@ -188,8 +188,12 @@ def summarise(out: Path, trials: list[Trial]) -> dict:
 def format_summary(summary: dict) -> str:
     """A Markdown table: one row per setting, mean ± 95% CI (n seeds) of each final metric."""
     metrics = [m for m in SUMMARY_METRICS if any(m in s["metrics"] for s in summary["settings"])]
-    rows = [[s["name"], *(f"{s['metrics'][m][0]:.3g} ± {s['metrics'][m][1]:.2g} (n={s['metrics'][m][2]})"
-                          if m in s["metrics"] else "-" for m in metrics)] for s in summary["settings"]]
+
+    def cell(mean: float, ci: float, n: int) -> str:  # one seed has no confidence interval: "–", not "± 0"
+        return f"{mean:.3g} ± {ci:.2g} (n={n})" if n > 1 else f"{mean:.3g} ± – (n=1)"
+
+    rows = [[s["name"], *(cell(*s["metrics"][m]) if m in s["metrics"] else "-" for m in metrics)]
+            for s in summary["settings"]]
     return format_table(["setting", *metrics], rows, markdown=True)
 
 

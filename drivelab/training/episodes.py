@@ -118,3 +118,12 @@ class EpisodeTracker:
         out = {f"{prefix}return": float(np.mean(self.returns)), f"{prefix}length": float(np.mean(self.lengths))}
         out.update({f"{prefix}{name}": float(np.mean(values)) for name, values in self.extra.items()})
         return out
+
+
+def stack_infos(infos: list[dict[str, float]]) -> dict[str, np.ndarray]:
+    """One info dict per env -> a vector env's batched ``info`` (``key`` and its mask ``_key``)."""
+    stacked = {}
+    for key in dict.fromkeys(key for info in infos for key in info):  # first-seen order, not a set's
+        stacked[key] = np.array([info.get(key, 0.0) for info in infos])
+        stacked[f"_{key}"] = np.array([key in info for info in infos])
+    return stacked

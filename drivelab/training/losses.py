@@ -53,8 +53,8 @@ def approx_kl(log_ratio: torch.Tensor) -> torch.Tensor:
 
 def explained_variance(predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """1 - Var[target - predicted] / Var[target]: 1 is perfect, 0 no better than a constant."""
-    var = target.var()
-    return 1 - (target - predicted).var() / var if var > 0 else torch.tensor(float("nan"))
+    var = target.var()  # NaN for a constant target; chosen on the device, without a host sync
+    return torch.where(var > 0, 1 - (target - predicted).var() / var, torch.full_like(var, float("nan")))
 
 
 def deterministic_actor_loss(q: torch.Tensor, pre_tanh: torch.Tensor, pre_tanh_l2: float = 0.0) -> torch.Tensor:

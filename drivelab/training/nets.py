@@ -418,6 +418,8 @@ class OffPolicyAgent(nn.Module):
         return self.policy(self.features(obs), deterministic)[0]
 
     def to_env(self, action: torch.Tensor) -> np.ndarray:
+        """[-1, 1] actions (on any device: the trainers' come from numpy) -> the env's Box bounds."""
+        action = torch.as_tensor(action, device=self.action_scale.device)
         return (action * self.action_scale + self.action_bias).cpu().numpy()
 
     def deterministic_action(self, obs: torch.Tensor) -> torch.Tensor:

@@ -8,22 +8,27 @@ them onto the env's Box bounds.
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Iterator
+from collections import deque
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
+import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode
 
-from drivelab.training.buffers import ReplayBatch, ReplayBuffer
-from drivelab.training.checkpoint import Checkpoint
-from drivelab.config import EnvConfig
+from drivelab.config import EnvConfig, TrainConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
+from drivelab.training.buffers import ReplayBatch, ReplayBuffer
+from drivelab.training.checkpoint import Checkpoint
+from drivelab.training.episodes import stack_infos
 from drivelab.training.nets import OffPolicyAgent
 from drivelab.training.run import Run
+from drivelab.training.worker_rollouts import ActorInWorker, Exploration
 
 
 @dataclass
@@ -41,10 +46,17 @@ class OffPolicyParams:
     activation: str = "relu"          # tanh | relu | elu | silu
     critic_layer_norm: bool = False   # LayerNorm in the critics' hidden layers (nets.Critics)
     compile: bool = False             # torch.compile the critic and actor forward passes
+    # The env workers act with a copy of the actor and keep stepping while the learner updates
+    # (subprocess envs; see ReplayCollector): faster, with a policy lag of one chunk.
+    act_in_workers: bool = False
+    chunk_steps: int = 32             # with act_in_workers: steps each worker plays per weight update
+    chunks_in_flight: int = 2         # with act_in_workers: chunks queued in each worker (the lag bound)
 
     def validate(self) -> None:
         if self.batch_size < 1 or self.buffer_size < self.batch_size:
             raise DrivelabError("config fields 'batch_size' and 'buffer_size' must satisfy 1 <= batch_size <= buffer_size")
+        if self.chunk_steps < 1 or self.chunks_in_flight < 1:
+            raise DrivelabError("config fields 'chunk_steps' and 'chunks_in_flight' must be >= 1")
         if not 0 < self.tau <= 1 or not 0 <= self.gamma <= 1 or self.utd <= 0:
             raise DrivelabError("config fields 'tau' (0, 1], 'gamma' [0, 1] and 'utd' (> 0) are out of range")
 
@@ -82,36 +94,73 @@ def make_optimizers(agent: OffPolicyAgent, hp: OffPolicyParams) -> Optimizers:
 class ReplayCollector:
     """N envs whose every transition goes into a replay buffer.
 
-    ``step`` stores (s, a, r, s', terminated, truncated), feeds ``run.episodes``, times the env
-    in ``run.timing.env`` and resets the envs whose episode ended. ``batches`` yields the
-    gradient steps owed under the update-to-data ratio.
+    :meth:`collect` plays the next env steps with an :class:`Exploration` (uniform random actions
+    during the heat-up, before ``learning_starts``) and stores them; ``batches`` then yields
+    the gradient steps owed for them under the update-to-data ratio. It plays them one of two
+    ways:
 
-    The envs run with ``AutoresetMode.DISABLED`` and are reset here, each with a seed from
-    ``run.rng``: the s' stored at an episode end is simply the step's observation, and every
-    episode's start is reproducible. A checkpoint (:meth:`state`) keeps the buffer, the sampling
-    RNG and each env's last reset seed; on resume (:meth:`start`), an env that had just been reset
-    starts again from that same seed, so a run checkpointed between episodes continues exactly as
-    if it had never stopped. An episode in flight cannot be saved: its env starts a new one.
+    * **in this process** (the default): one vector step per call; the envs wait while the
+      learner updates. Bit-reproducible for a seed, whatever the timing.
+    * **in the env workers** (``act_in_workers``, subprocess envs): each worker plays chunks of
+      ``chunk_steps`` steps with a copy of the actor (:class:`~drivelab.training.worker_rollouts.ActorInWorker`)
+      and keeps stepping while the learner updates on what is already stored. Each worker has
+      ``chunks_in_flight`` chunks queued, so it starts the next as soon as it has sent one. A
+      call stores the oldest chunk in flight and queues a new one with the learner's weights of
+      the moment: the actor the workers play lags the learner's by at most
+      ``chunks_in_flight`` chunks of updates (``utd * chunk_steps * N`` gradient steps each,
+      logged as ``charts/policy_lag``). This gives up the exact interleaving of the default: an
+      update never sees the chunks being played, and episodes in flight when a checkpoint is
+      written restart on resume. A run is still reproducible for a seed (what a worker plays
+      depends on its reset seed and the weights it was sent, never on timing), but it is not
+      the default mode's run.
+
+    The envs run with ``AutoresetMode.DISABLED``; this collector (or the worker) resets them,
+    each from a seed drawn from ``run.rng``: the s' stored at an episode end is simply the
+    step's observation, and every episode's start is reproducible. A checkpoint
+    (:meth:`state`) keeps the buffer, the sampling RNG, the update counts and each env's last
+    reset seed; on resume (:meth:`start`), an env that had just been reset starts again from
+    that same seed, so a run checkpointed between episodes continues exactly as if it had never
+    stopped. An episode in flight cannot be saved: its env starts a new one.
     """
 
-    def __init__(self, env_cfg: EnvConfig, hp: OffPolicyParams, run: Run, seed: int):
-        self.envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, on_restart=run.note_env_restart)
+    def __init__(self, env_cfg: EnvConfig, hp: OffPolicyParams, run: Run, seed: int,
+                 worker_agent: Callable[[gym.Space, gym.Space], OffPolicyAgent] | None = None,
+                 worker_exploration: Callable[[int, int, int], Exploration] | None = None):
+        self.in_workers = hp.act_in_workers
+        wrapper = (functools.partial(ActorInWorker, make_agent=worker_agent, make_exploration=worker_exploration)
+                   if self.in_workers else None)
+        self.envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, on_restart=run.note_env_restart,
+                                    wrapper=wrapper)
         self.num_envs = self.envs.num_envs
         self.obs_space, self.act_space = self.envs.single_observation_space, self.envs.single_action_space
         self.buffer = ReplayBuffer(hp.buffer_size, self.obs_space, self.act_space, run.device)
         self.sample_rng = np.random.default_rng([seed, 1])
-        self.hp, self.run = hp, run
-        self.steps = run.step                 # env steps taken (run.step after this collector's last step)
+        self.hp, self.run, self.step_timeout = hp, run, env_cfg.step_timeout
+        self.steps = run.step                 # env steps stored (run.step after this collector's last call)
         self.obs = None
         self._updates_owed = 0.0              # fractional gradient steps carried over (utd < 1)
+        self._new_steps = 0                   # env steps stored by the last collect()
         self.updates = 0                      # gradient steps taken (TD3 updates its actor every policy_delay-th)
-        self.exploration: NoisyExploration | None = None
+        self.exploration: Exploration | None = None
         self._reset_seeds = np.zeros(self.num_envs, np.int64)   # each env's last reset seed
         self._fresh = np.zeros(self.num_envs, bool)             # reset, not stepped since
+        self._in_flight: deque[int] = deque()                   # self.updates when each chunk in flight was sent
+        self._sent_steps = self.steps                           # env steps stored or in flight
 
-    def start(self, checkpoint: Checkpoint | None, exploration: NoisyExploration | None = None) -> None:
+    @classmethod
+    def from_config(cls, cfg: TrainConfig, run: Run,
+                    build_policy: Callable[[TrainConfig, gym.Space, gym.Space], OffPolicyAgent],
+                    exploration: Callable[..., Exploration]) -> ReplayCollector:
+        """The collector an off-policy config asks for. With ``act_in_workers`` each env worker
+        builds its actor with ``build_policy(cfg, obs_space, act_space)`` and its one-env
+        exploration with ``exploration(cfg.algo_params, 1, act_dim, seed)``."""
+        hp: OffPolicyParams = cfg.algo_params
+        return cls(cfg.env, hp, run, seed=cfg.seed, worker_agent=functools.partial(build_policy, cfg),
+                   worker_exploration=functools.partial(exploration, hp))
+
+    def start(self, checkpoint: Checkpoint | None, exploration: Exploration) -> None:
         """Reset every env; on resume, first load the buffer, the sampling RNG, the update counts,
-        the ``exploration`` noise and the seeds of episodes that had not started yet
+        the ``exploration``'s state and the seeds of episodes that had not started yet
         (``checkpoint`` as returned by ``run.start``). The exploration's state is saved with the
         collector's from then on."""
         self.exploration = exploration
@@ -125,7 +174,7 @@ class ReplayCollector:
         self.buffer.load_state(checkpoint.tensors, trainer["replay"])
         self.sample_rng.bit_generator.state = trainer["sample_rng"]
         self.updates, self._updates_owed = int(trainer.get("updates", 0)), float(trainer.get("updates_owed", 0.0))
-        if exploration is not None and "exploration" in trainer:
+        if "exploration" in trainer:
             exploration.load_state(trainer["exploration"])
         fresh = np.asarray(trainer.get("fresh", [False] * self.num_envs), bool)[: self.num_envs]
         old_seeds = trainer.get("reset_seeds", [0] * self.num_envs)
@@ -145,9 +194,7 @@ class ReplayCollector:
         tensors, meta = self.buffer.state()
         state = {"replay": meta, "sample_rng": self.sample_rng.bit_generator.state, "updates": self.updates,
                  "updates_owed": self._updates_owed, "reset_seeds": self._reset_seeds.tolist(),
-                 "fresh": self._fresh.tolist()}
-        if self.exploration is not None:
-            state["exploration"] = self.exploration.state()
+                 "fresh": self._fresh.tolist(), "exploration": self.exploration.state()}
         return tensors, state
 
     def obs_tensor(self) -> torch.Tensor:
@@ -156,6 +203,23 @@ class ReplayCollector:
     def random_actions(self) -> np.ndarray:
         """(N, A) uniform actions in [-1, 1]: the heat-up before ``learning_starts``."""
         return self.sample_rng.uniform(-1.0, 1.0, size=(self.num_envs, self.act_space.shape[0]))
+
+    def collect(self, agent: OffPolicyAgent) -> int:
+        """Play and store the next env steps with ``agent`` and the exploration; returns how many
+        were stored (for ``run.end_iteration``). In this process: one vector step. In the
+        workers: the oldest chunk in flight (none until ``chunks_in_flight`` are queued), and a
+        new chunk is queued with the actor's weights of the moment."""
+        if self.in_workers:
+            stored = self._store_chunk() if len(self._in_flight) >= self.hp.chunks_in_flight else 0
+            while len(self._in_flight) < self.hp.chunks_in_flight:
+                self._send_chunk(agent)
+        else:
+            heat_up = self.steps < self.hp.learning_starts
+            action = self.random_actions() if heat_up else self.exploration(agent, self.obs_tensor(), self.steps)
+            self.exploration.end_episodes(self.step(agent, action))
+            stored = self.num_envs
+        self._new_steps = stored
+        return stored
 
     def step(self, agent: OffPolicyAgent, action: np.ndarray) -> np.ndarray:
         """Step every env with ``action`` (N, A) in policy units; returns ``done`` (N,)."""
@@ -172,12 +236,51 @@ class ReplayCollector:
             self._reset(done, self.run.reset_seeds(done))
         return done
 
+    def _send_chunk(self, agent: OffPolicyAgent) -> None:
+        """Queue ``chunk_steps`` steps in each worker with the actor's current weights; the
+        chunk's steps are the ``chunk_steps * N`` after those already stored or in flight."""
+        weights = {name: value.detach().cpu().numpy() for name, value in agent.state_dict().items()
+                   if not name.startswith("critic.")}
+        heat_up = self._sent_steps < self.hp.learning_starts
+        self.envs.call_queue("play", weights, self.hp.chunk_steps, self._sent_steps, self.num_envs, heat_up,
+                             steps=self.hp.chunk_steps)
+        self._in_flight.append(self.updates)
+        self._sent_steps += self.hp.chunk_steps * self.num_envs
+        self._fresh[:] = False  # the workers are playing: no episode can be restarted from its seed
+
+    def _store_chunk(self) -> int:
+        """Wait for the oldest chunk in flight and store it, step by step as if this process had
+        stepped the envs; returns the env steps stored (0 if a worker failed: the workers
+        restarted, the chunks in flight are dropped and every env starts a new episode)."""
+        with self.run.timing.env:
+            chunks = self.envs.call_next(timeout=self.step_timeout and self.step_timeout * self.hp.chunk_steps)
+        self.run.record({"charts/policy_lag": float(self.updates - self._in_flight.popleft())})
+        if chunks is None:  # the workers restarted: the chunks in flight are gone
+            self._in_flight.clear()
+            self._sent_steps = self.steps
+            everyone = np.ones(self.num_envs, bool)
+            self.run.episodes.restart(everyone)
+            self._reset(everyone, self.run.reset_seeds(everyone))
+            return 0
+        # (T, N, ...) in the order the trainer would have stepped them: row t of every env, then t + 1
+        obs, actions, rewards, next_obs, terminated, truncated = (
+            np.stack([getattr(chunk, name) for chunk in chunks], axis=1)
+            for name in ("obs", "actions", "rewards", "next_obs", "terminated", "truncated"))
+        flat = lambda x: x.reshape(-1, *x.shape[2:])  # noqa: E731
+        self.buffer.add(flat(obs), flat(actions), flat(rewards), flat(next_obs), flat(terminated), flat(truncated))
+        done = terminated | truncated
+        for t in range(len(rewards)):
+            info = stack_infos([chunk.episode_info.get(t, {}) for chunk in chunks]) if done[t].any() else {}
+            self.run.episodes.step(rewards[t], done[t], info)
+        self.steps += rewards.size
+        return rewards.size
+
     def batches(self) -> Iterator[ReplayBatch]:
-        """The uniform batches for the ``utd * N`` gradient steps owed for the last vector step
-        (fractional ratios carry over), once ``learning_starts`` steps are stored."""
+        """The uniform batches for the ``utd`` gradient steps owed per env step stored by the
+        last :meth:`collect` (fractional counts carry over), once ``learning_starts`` steps are stored."""
         if self.steps < self.hp.learning_starts:
             return
-        self._updates_owed += self.hp.utd * self.num_envs
+        self._updates_owed += self.hp.utd * self._new_steps
         while self._updates_owed >= 1:
             self._updates_owed -= 1
             self.updates += 1
@@ -216,6 +319,26 @@ class OrnsteinUhlenbeckNoise:
 
     def reset(self, mask: np.ndarray) -> None:
         self.x[mask] = 0.0
+
+
+class PolicySampling:
+    """SAC's exploration: a sample of its own stochastic policy (no added noise), drawn with
+    torch's generator of the process that acts."""
+
+    def __init__(self, hp: OffPolicyParams, num_envs: int, act_dim: int, seed: int):
+        pass
+
+    def __call__(self, agent: OffPolicyAgent, obs: torch.Tensor, step: int) -> np.ndarray:
+        return agent.act(obs).cpu().numpy()
+
+    def end_episodes(self, done: np.ndarray) -> None:
+        pass
+
+    def state(self) -> dict:
+        return {}
+
+    def load_state(self, state: dict) -> None:
+        pass
 
 
 class NoisyExploration:

@@ -27,6 +27,7 @@ from gymnasium.vector import AutoresetMode
 from drivelab.config import EnvConfig, TrainConfig
 from drivelab.envs.groups import EnvGroups
 from drivelab.errors import DrivelabError
+from drivelab.training.episodes import stack_infos
 from drivelab.training.nets import ActorCritic, PolicyNetParams, sample
 from drivelab.training.normalize import RunningMeanStd
 from drivelab.training.returns import gae
@@ -263,15 +264,6 @@ class RolloutCollector:
 
     def close(self) -> None:
         self.envs.close()
-
-
-def stack_infos(infos: list[dict[str, float]]) -> dict[str, np.ndarray]:
-    """One info dict per env -> a vector env's batched ``info`` (``key`` and its mask ``_key``)."""
-    stacked = {}
-    for key in dict.fromkeys(key for info in infos for key in info):  # first-seen order, not a set's
-        stacked[key] = np.array([info.get(key, 0.0) for info in infos])
-        stacked[f"_{key}"] = np.array([key in info for info in infos])
-    return stacked
 
 
 class EpisodeStorage:

@@ -43,8 +43,9 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -60,11 +61,26 @@ from drivelab.training.run_metrics import RunMetrics, check_finite
 from drivelab.training.timing import Timing
 
 
+class RunEvent(NamedTuple):
+    """What a training callback hears (``drivelab.train(..., callback=fn)``): ``fn(event)`` is
+    called on each log, evaluation and checkpoint; returning False stops the run cleanly, with a
+    checkpoint at the step reached."""
+    kind: str                     # "log", "eval" or "checkpoint"
+    step: int                     # env steps so far
+    metrics: dict[str, float]     # log: the values logged; eval: the evaluation's summary; checkpoint: {}
+    path: Path | None = None      # checkpoint: its directory
+
+
+Callback = Callable[[RunEvent], "bool | None"]
+
+
 class Run:
     """A training run's state and services (see the module docstring for the loop they serve)."""
 
-    def __init__(self, cfg: TrainConfig, resume_from: Checkpoint | None = None, progress: bool = True):
+    def __init__(self, cfg: TrainConfig, resume_from: Checkpoint | None = None, progress: bool = True,
+                 callback: Callback | None = None):
         self.cfg = cfg
+        self._callback, self.stopped_by_callback = callback, False
         self.dir = Path(cfg.run_dir)
         self._lock = open_run_dir(cfg)
         self.device = torch.device(cfg.device)
@@ -81,7 +97,8 @@ class Run:
                                    resumed=resume_from is not None, progress=progress)
         self.tracker, self.pbar = self._metrics.tracker, self._metrics.pbar
         self._evaluation = RunEvaluation(cfg, self.dir, self.tracker, self.device, best=best,
-                                         save=lambda name: self._save(name=name), on_restart=self.note_env_restart)
+                                         save=lambda name: self._save(name=name), on_restart=self.note_env_restart,
+                                         on_result=lambda step, summary: self._notify(RunEvent("eval", step, summary)))
         self._policy: torch.nn.Module | None = None
         self._extra_state: ExtraState | None = None
         self._next_log = self._after(self.step, cfg.log_every)
@@ -148,15 +165,20 @@ class Run:
 
     @property
     def done(self) -> bool:
-        """``steps`` reached, or ``max_minutes`` of training spent (in this process)."""
-        if self.step >= self.cfg.steps:
+        """``steps`` reached, ``max_minutes`` of training spent (in this process), or the
+        callback asked to stop."""
+        if self.step >= self.cfg.steps or self.stopped_by_callback:
             return True
         limit = self.cfg.max_minutes
         return limit is not None and time.perf_counter() - self._metrics.start_time >= 60 * limit
 
     def log(self, metrics: Mapping[str, float]) -> None:
         """Log ``metrics`` with the episode means and the perf/* numbers at the current step."""
-        self._metrics.log(self.step, metrics)
+        self._notify(RunEvent("log", self.step, self._metrics.log(self.step, metrics)))
+
+    def _notify(self, event: RunEvent) -> None:
+        if self._callback is not None and self._callback(event) is False:
+            self.stopped_by_callback = True
 
     # ---- evaluation and checkpoints -------------------------------------------------------
 
@@ -167,7 +189,10 @@ class Run:
         return self._evaluation.evaluate(self.step, self._policy)
 
     def _save(self, extra_state: ExtraState | None = None, name: str | None = None) -> Path:
-        return self._checkpoints.save(self.step, self.iteration, self._evaluation.best, extra_state, name)
+        path = self._checkpoints.save(self.step, self.iteration, self._evaluation.best, extra_state, name)
+        if name is None:  # the run's own checkpoints (not best, nor an evaluation's copy)
+            self._notify(RunEvent("checkpoint", self.step, {}, path))
+        return path
 
     def checkpoint_now(self) -> Path | None:
         """After an interrupt (Ctrl-C, SIGTERM): save the current state unless it is saved already

@@ -40,11 +40,12 @@ class RunEvaluation:
     ``save(name)`` writes the run's current state as ``checkpoints/<name>``."""
 
     def __init__(self, cfg: TrainConfig, run_dir: Path, tracker: Tracker, device: torch.device,
-                 save: Callable[[str], Path], on_restart: Callable[[int], None], best: list[float] | None = None):
+                 save: Callable[[str], Path], on_restart: Callable[[int], None], best: list[float] | None = None,
+                 on_result: Callable[[int, dict[str, float]], None] | None = None):
         self.cfg, self.dir, self.tracker, self.device = cfg, run_dir, tracker, device
         self.env_cfg = eval_env_config(cfg)
         self.best = best                 # [best_metric, return_mean] of checkpoints/best
-        self._save, self._on_restart = save, on_restart
+        self._save, self._on_restart, self._on_result = save, on_restart, on_result
         self._envs = None                # local: the evaluation envs, built at the first evaluation
         self._actor = None               # ray: the actor ...
         self._pending = None             # ... and (step, result ref) of the evaluation in flight
@@ -102,12 +103,13 @@ class RunEvaluation:
         gets the summary as ``eval.json``, and the filmed episode is logged."""
         self.tracker.log(step, {f"eval/{k}": v for k, v in summary.items() if k != "episodes"})
         score = new_best(summary, self.cfg.eval.best_metric, self.best)
-        if score is None:
-            return
-        self.best = score
-        (keep() / "eval.json").write_text(json.dumps({"step": step, **summary}, indent=1))
-        if film is not None:
-            self.tracker.log_video(step, *film)
+        if score is not None:
+            self.best = score
+            (keep() / "eval.json").write_text(json.dumps({"step": step, **summary}, indent=1))
+            if film is not None:
+                self.tracker.log_video(step, *film)
+        if self._on_result is not None:
+            self._on_result(step, summary)
 
     def _promote_pending(self) -> Path:
         """``checkpoints/.eval_pending`` (the state the actor's copy was taken from) becomes ``best``."""

@@ -56,11 +56,14 @@ class RunMetrics:
         values = dict(zip(tensors, torch.stack([t.float().cpu() for t in tensors.values()]).tolist())) if tensors else {}
         return {**{k: float(v) for k, v in sums.items() if not torch.is_tensor(v)}, **values}
 
-    def log(self, step: int, metrics: Mapping[str, float]) -> None:
-        """Log ``metrics`` with the episode means and the perf/* numbers at ``step``."""
+    def log(self, step: int, metrics: Mapping[str, float]) -> dict[str, float]:
+        """Log ``metrics`` with the episode means and the perf/* numbers at ``step``; returns all
+        that was logged."""
         elapsed = time.perf_counter() - self.start_time
-        self.tracker.log(step, {**self.episodes.means(), **metrics, **self.timing.fractions(),
-                                "perf/steps_per_s": (step - self._start_step) / max(elapsed, 1e-9)})
+        logged = {**self.episodes.means(), **metrics, **self.timing.fractions(),
+                  "perf/steps_per_s": (step - self._start_step) / max(elapsed, 1e-9)}
+        self.tracker.log(step, logged)
+        return logged
 
     def advance(self, step: int, steps: int) -> None:
         """Move the progress bar by ``steps`` to ``step``, showing the recent episodes' return."""

@@ -1,5 +1,6 @@
 """Rollouts played inside the env workers, each with its own copy of the policy (``act_in_workers``
-of A2C and PPO; the rollout workers of RLlib, which MetaDrive's reference training uses).
+of A2C and PPO, and of DDPG, TD3 and SAC; the rollout workers of RLlib, which MetaDrive's
+reference training uses).
 
 Stepping the envs from the trainer costs a round trip per step: the worker sends its
 observation, waits while the trainer runs the policy, and receives the action. On a small
@@ -13,19 +14,23 @@ seeded by the env's reset seed, so a rollout does not depend on timing) and retu
 rollout buffer needs, including the values for GAE. Episodes end as in ``AutoresetMode.SAME_STEP``
 (:mod:`drivelab.training.rollout`): a terminated step bootstraps nothing, a truncated one from
 V(final observation), computed in the worker with the same weights.
+
+The off-policy algorithms use :class:`ActorInWorker`: a worker plays a chunk of steps with a copy
+of the actor and its exploration, and returns the transitions (s, a, r, s', terminated,
+truncated) for the replay buffer, while the learner updates (:mod:`drivelab.training.offpolicy`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import gymnasium as gym
 import numpy as np
 import torch
 
 from drivelab.training.episodes import is_episode_metric
-from drivelab.training.nets import ActorCritic, sample
+from drivelab.training.nets import ActorCritic, OffPolicyAgent, sample
 
 
 class WorkerRollout(NamedTuple):
@@ -94,3 +99,89 @@ class PolicyInWorker(gym.Wrapper):
         last_value = self.policy.value(torch.as_tensor(self.obs).unsqueeze(0)).item()
         return WorkerRollout(obs_buf, actions, log_probs.numpy(), values.numpy(), rewards, terminated, truncated,
                              final_values.numpy(), last_value, episode_info)
+
+
+class WorkerTransitions(NamedTuple):
+    """T consecutive transitions of one env, played by its worker (numpy: what crosses the pipe).
+    Row t is (s_t, a_t, r_t, s'_t, terminated_t, truncated_t); at an episode end s'_t is the
+    episode's final observation and row t + 1 starts the next episode."""
+    obs: np.ndarray           # (T, *obs_shape)
+    actions: np.ndarray       # (T, act_dim) in the policy's [-1, 1] units
+    rewards: np.ndarray       # (T,)
+    next_obs: np.ndarray      # (T, *obs_shape)
+    terminated: np.ndarray    # (T,) bool
+    truncated: np.ndarray     # (T,) bool
+    episode_info: dict[int, dict[str, float]]  # step t -> driving metrics of the episode that ended there
+
+
+class Exploration(Protocol):
+    """How an off-policy agent acts while it trains (:mod:`drivelab.training.offpolicy`)."""
+
+    def __call__(self, agent: OffPolicyAgent, obs: torch.Tensor, step: int) -> np.ndarray:
+        """(N, A) actions in [-1, 1] for (N, ...) observations at env step ``step``."""
+
+    def end_episodes(self, done: np.ndarray) -> None:
+        """The (N,) envs in ``done`` start new episodes (e.g. an Ornstein-Uhlenbeck process restarts)."""
+
+
+class ActorInWorker(gym.Wrapper):
+    """Wraps the env in its worker process; :meth:`play` plays T steps with a local copy of an
+    off-policy actor and its exploration, the env resetting itself after every episode end.
+
+    ``make_agent(observation_space, action_space)`` builds the network (the algorithm's own
+    ``build_policy``); the actor's weights come with every chunk. ``make_exploration(1, act_dim,
+    seed)`` builds a one-env exploration (:class:`Exploration`). The trainer resets the env through the
+    vector env with a seed; that seed also seeds this worker's exploration noise, its heat-up
+    actions and its torch generator (SAC samples with it), so what a worker plays depends on
+    the seed and the weights, never on timing.
+    """
+
+    def __init__(self, env: gym.Env, make_agent: Callable[[gym.Space, gym.Space], OffPolicyAgent],
+                 make_exploration: Callable[[int, int, int], Exploration]):
+        super().__init__(env)
+        self.make_agent, self.make_exploration = make_agent, make_exploration
+        self.agent: OffPolicyAgent | None = None
+        self.exploration: Exploration | None = None
+        self.rng = np.random.default_rng()
+        self.obs: np.ndarray | None = None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+            torch.manual_seed(seed)  # this process's own generator: SAC's samples
+            self.exploration = self.make_exploration(1, self.action_space.shape[0], seed)
+        self.obs = obs
+        return obs, info
+
+    @torch.no_grad()
+    def play(self, weights: dict[str, np.ndarray], num_steps: int, step: int, step_stride: int,
+             heat_up: bool) -> WorkerTransitions:
+        """T = ``num_steps`` transitions: uniform random actions when ``heat_up``, else the
+        exploration's, whose schedule sees env step ``step + t * step_stride`` at row t
+        (``step_stride`` = N envs, as when the trainer steps them together)."""
+        if self.agent is None:
+            torch.set_num_threads(1)  # one core per worker: the workers share the machine
+            self.agent = self.make_agent(self.observation_space, self.action_space)
+        self.agent.load_state_dict({name: torch.from_numpy(value) for name, value in weights.items()}, strict=False)
+        obs_buf = np.zeros((num_steps, *self.observation_space.shape), self.observation_space.dtype)
+        next_obs_buf = np.zeros_like(obs_buf)
+        actions = np.zeros((num_steps, *self.action_space.shape), np.float32)
+        rewards = np.zeros(num_steps, np.float32)
+        terminated, truncated = np.zeros(num_steps, bool), np.zeros(num_steps, bool)
+        episode_info = {}
+        for t in range(num_steps):
+            obs_buf[t] = self.obs
+            if heat_up:
+                actions[t] = self.rng.uniform(-1.0, 1.0, size=actions.shape[1:])
+            else:
+                actions[t] = self.exploration(self.agent, torch.as_tensor(self.obs).unsqueeze(0), step + t * step_stride)[0]
+            obs, rewards[t], terminated[t], truncated[t], info = self.env.step(
+                self.agent.to_env(torch.as_tensor(actions[t]).unsqueeze(0))[0])
+            next_obs_buf[t] = obs
+            if terminated[t] or truncated[t]:
+                episode_info[t] = {key: float(x) for key, x in info.items() if is_episode_metric(key)}
+                self.exploration.end_episodes(np.ones(1, bool))
+                obs, _ = self.env.reset()
+            self.obs = obs
+        return WorkerTransitions(obs_buf, actions, rewards, next_obs_buf, terminated, truncated, episode_info)

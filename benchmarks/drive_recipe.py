@@ -1,0 +1,148 @@
+"""The drive recipe on MetaDrive's benchmark protocol, over seeds: one table and one PNG. Not a test.
+
+    python benchmarks/drive_recipe.py --config configs/drive.yaml --seeds 0 1 2 3 4 --runs runs/drive \\
+        --out benchmarks/results/drive_recipe.json
+
+For each seed: train RUNS/seed_N with the config (its ``max_minutes`` bounds the training wall
+clock; an interrupted run resumes, a finished one is kept), then evaluate the run's own choice,
+``checkpoints/best`` (picked during training on validation scenarios 200-229), on the 200 unseen
+scenarios of MetaDrive's protocol: start seeds 0-199, default traffic, deterministic actions,
+episode k on scenario k. MetaDrive's PPO expert and the random policy play the same 200.
+
+The JSON has, per seed, the held-out success, crash, out-of-road and route completion, the
+training wall clock and env steps, the checkpoint's step; over seeds the mean with its 95%
+confidence interval (Student's t) and the minimum. The PNG plots success on the selection
+scenarios (the in-training evaluations) against training wall-clock minutes per seed, with the
+held-out success of the chosen checkpoints and of the baselines. Every result is cached in the
+run directories and the JSON: running it again only does what is missing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from importlib.metadata import version
+from pathlib import Path
+
+import numpy as np
+
+from drivelab.api import baseline_env, build_config, evaluate_baseline, evaluate_checkpoint, train
+from drivelab.config import read_yaml
+from drivelab.training.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
+from drivelab.training.plots import mean_and_ci95, read_metrics
+
+HELDOUT_ENV, EPISODES = "MetaDrive-validation-v0", 200
+METRICS = ("success_rate", "crash_rate", "out_of_road_rate", "route_completion")
+
+
+def train_seed(config: str, seed: int, run_dir: Path) -> dict:
+    """Train (or finish) one seed; its wall clock and steps are kept in RUN/training.json."""
+    record = run_dir / "training.json"
+    if record.is_file():
+        return json.loads(record.read_text())
+    cfg = build_config({**read_yaml(config), "seed": seed, "run_dir": str(run_dir)})
+    started = time.perf_counter()
+    train(cfg, resume=bool(list_checkpoints(run_dir)))
+    result = {"minutes": round((time.perf_counter() - started) / 60, 2),
+              "steps": checkpoint_step(resolve_checkpoint(run_dir))}
+    record.write_text(json.dumps(result) + "\n")
+    return result
+
+
+def heldout(run_dir: Path) -> dict:
+    """The run's checkpoints/best on the 200 held-out scenarios (cached in RUN/heldout.json)."""
+    cache = run_dir / "heldout.json"
+    if cache.is_file():
+        return json.loads(cache.read_text())
+    best = run_dir / "checkpoints" / "best"
+    result, _, _ = evaluate_checkpoint(best, EPISODES, HELDOUT_ENV, num_envs=2)
+    row = {**outcomes(result), "step": checkpoint_step(best)}
+    cache.write_text(json.dumps(row) + "\n")
+    return row
+
+
+def outcomes(result) -> dict:
+    """The means of METRICS and, under ``per_episode``, each episode's (for model cards)."""
+    return {**{m: result.summary()[m] for m in METRICS},
+            "per_episode": {m: [round(float(x), 4) for x in result.metrics[m]] for m in METRICS}}
+
+
+def selection_curve(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(training minutes, success on the selection scenarios) of the in-training evaluations."""
+    _, seconds, values = read_metrics(run_dir)["eval/success_rate"]  # seconds since the run's first log row
+    return seconds / 60, values
+
+
+def plot(runs: dict[int, Path], table: dict, baselines: dict, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.8))
+    for seed, run_dir in runs.items():
+        minutes, success = selection_curve(run_dir)
+        line, = ax.plot(minutes, success, "o-", alpha=0.8, label=f"seed {seed}: selection scenarios 200-229")
+        row = table[str(seed)]
+        ax.plot([row["minutes"]], [row["success_rate"]], "*", markersize=13, color=line.get_color())
+    for (name, summary), color in zip(baselines.items(), ("tab:green", "tab:gray")):
+        ax.axhline(summary["success_rate"], color=color, linestyle=":", label=f"{name} (held-out 0-199)")
+    ax.plot([], [], "*", color="black", label="chosen checkpoint on held-out 0-199, at the end of training")
+    ax.set_xlabel("training wall clock (minutes, 2 CPU cores)")
+    ax.set_ylabel("success rate")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left")
+    ax.set_title("drive recipe (TD3, env workers acting) on MetaDrive's protocol")
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", default="configs/drive.yaml")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    parser.add_argument("--runs", type=Path, default=Path("runs/drive"))
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/drive_recipe.json"))
+    parser.add_argument("--skip-train", action="store_true", help="only evaluate the seeds already trained")
+    args = parser.parse_args()
+    previous = json.loads(args.out.read_text()) if args.out.is_file() else {}
+    runs, table = {}, {}
+    for seed in args.seeds:
+        run_dir = args.runs / f"seed_{seed}"
+        if args.skip_train and not (run_dir / "training.json").is_file():
+            continue
+        trained = train_seed(args.config, seed, run_dir)
+        table[str(seed)] = {**trained, **{k: v for k, v in heldout(run_dir).items() if k != "per_episode"}}
+        runs[seed] = run_dir
+        print(json.dumps({"seed": seed, **table[str(seed)]}), flush=True)
+    baselines = previous.get("baselines") or {}
+    for name in ("metadrive-expert", "random"):
+        if name not in baselines:
+            result = evaluate_baseline(name, baseline_env(env_id=HELDOUT_ENV), EPISODES)
+            baselines[name] = outcomes(result)
+    summary = {}
+    for metric in (*METRICS, "minutes", "steps"):
+        values = np.array([row[metric] for row in table.values()], float)
+        mean, half = mean_and_ci95(values)
+        summary[metric] = {"mean": float(mean), "ci95": float(half), "min": float(values.min()), "max": float(values.max())}
+    result = {"benchmark": "drive-recipe", "config": args.config, "metadrive_version": version("metadrive-simulator"),
+              "protocol": "train on MetaDrive-1000envs (start seed 1000, 1000 scenarios); report checkpoints/best, "
+                          "chosen on validation scenarios 200-229 during training, on the 200 unseen scenarios "
+                          "0-199 (MetaDrive-validation-v0, default traffic, deterministic actions)",
+              "seeds": table, "summary": summary, "baselines": baselines}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    plot(runs, table, baselines, args.out.with_suffix(".png"))
+    success = summary["success_rate"]
+    print(f"held-out success over {len(table)} seeds: {success['mean']:.3f} ± {success['ci95']:.3f} "
+          f"(min {success['min']:.3f}); expert {baselines['metadrive-expert']['success_rate']:.3f}, "
+          f"random {baselines['random']['success_rate']:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,82 @@
+"""Turn a run of the drive benchmark into a shipped driver with its model card (drivelab/tools/drivers.py).
+
+    python benchmarks/drive_recipe.py --seeds 0 --runs runs/drive      # trains, evaluates on 0-199
+    python benchmarks/ship_driver.py runs/drive/seed_0 --benchmark benchmarks/results/drive_recipe.json
+
+Takes ``RUN/checkpoints/best`` (chosen during training on scenarios disjoint from the reported
+ones) and keeps the policy alone (``TrainedPolicy.save``: the same tensors). Its evaluation on
+MetaDrive's protocol (the 200 unseen validation scenarios, start seeds 0-199, default traffic,
+per episode) comes from ``RUN/heldout.json``, and MetaDrive's expert's on the same scenarios from
+the benchmark's JSON, both written by benchmarks/drive_recipe.py; tests/test_drivers.py replays
+the first scenarios with the shipped files. Writes ``drivelab/drivers/NAME/``. Not a test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from importlib.metadata import version
+from pathlib import Path
+
+from drivelab import api
+from drivelab.tools.drivers import DRIVERS_DIR, card_metrics, write_driver
+from drivelab.training.checkpoint import checkpoint_step
+
+PROTOCOL = ("MetaDrive's generalization protocol: trained on MetaDrive-1000envs (start seed 1000, 1000 "
+            "scenarios); evaluated deterministically on the 200 unseen scenarios of start seeds 0-199 "
+            "(MetaDrive-validation-v0, default traffic), episode k on scenario k")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--name", default="drivelab-driver")
+    parser.add_argument("--config", default="drive", help="the shipped config the run used (for the card)")
+    parser.add_argument("--summary", default="TD3 that drives MetaDrive roads it has never seen")
+    parser.add_argument("--benchmark", type=Path, default=Path("benchmarks/results/drive_recipe.json"))
+    args = parser.parse_args()
+    best = args.run / "checkpoints" / "best"
+    heldout = json.loads((args.run / "heldout.json").read_text())
+    expert = json.loads(args.benchmark.read_text())["baselines"]["metadrive-expert"]
+    if heldout["step"] != checkpoint_step(best):
+        raise SystemExit(f"{args.run / 'heldout.json'} is of step {heldout['step']}, checkpoints/best of {checkpoint_step(best)}")
+    policy = api.load(best)
+    cfg = policy.config
+    with tempfile.TemporaryDirectory() as tmp:
+        saved = policy.save(Path(tmp) / "policy")
+        step = checkpoint_step(best)
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+        training = json.loads((args.run / "training.json").read_text())
+        card = {
+            "name": args.name,
+            "summary": args.summary,
+            "training": {
+                "algo": cfg.algo, "config": f"configs/{args.config}.yaml", "seed": cfg.seed, "steps": step,
+                "minutes": training["minutes"], "steps_trained": training["steps"], "machine": "2 CPU cores, no GPU",
+                "drivelab_commit": commit, "metadrive_version": version("metadrive-simulator"),
+                "selection": f"checkpoints/best: highest {cfg.eval.best_metric} on {cfg.eval.env_id} scenarios "
+                             f"{cfg.eval.seed}-{cfg.eval.seed + cfg.eval.episodes - 1}, every {cfg.eval.every:,} steps",
+                "reproduce": f"drivelab train --config {args.config} --seed {cfg.seed} --max_minutes "
+                             f"{round(training['minutes'])} --run-dir runs/{args.name} && "
+                             f"drivelab eval runs/{args.name}/checkpoints/best --env MetaDrive-validation-v0 "
+                             f"--episodes 200 --num-envs 2 --json",
+            },
+            "observation": "MetaDrive's lidar state: ego state, navigation and 240 lidar beams",
+            "observation_shape": list(policy.observation_space.shape),
+            "evaluation": {
+                "protocol": PROTOCOL, "episodes": len(heldout["per_episode"]["success_rate"]),
+                "policies": {args.name: card_metrics(heldout["per_episode"]),
+                             "metadrive-expert": card_metrics(expert["per_episode"])},
+                "per_episode": {name: heldout["per_episode"][name] for name in ("success_rate", "route_completion")},
+            },
+        }
+        out = write_driver(DRIVERS_DIR / args.name, saved, card)
+    print(api.model_card(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,139 @@
+"""Trained drivers that ship with drivelab, and the model cards that vouch for them.
+
+A driver is a directory (package data under ``drivelab/drivers/NAME/``, or one a user downloaded)
+holding a policy as ``TrainedPolicy.save`` writes it (``tensors.safetensors``: the policy's
+weights and observation statistics; ``state.json``: the run's config and step) and
+``card.json``, its model card: how it was trained (algorithm, config, seed, steps, wall clock,
+drivelab commit, MetaDrive version, the command that reproduces it), its evaluation on
+MetaDrive's protocol (the 200 unseen scenarios, start seeds 0-199: success, crash, out of road,
+route completion with 95% confidence intervals, per episode too) beside MetaDrive's expert on
+the same scenarios, and the sha256 of each file.
+
+Everything that takes a run or a checkpoint takes a shipped driver's name (``drivelab eval
+drivelab-driver``, ``drivelab.load("drivelab-driver")``, ``drivelab export drivelab-driver``):
+:func:`resolve_policy_path` turns the name into the directory, and any directory with a card is
+checked against it first: a file whose hash differs is refused, as is an env whose observation
+layout differs from the one the driver was trained on.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+from drivelab.errors import DrivelabError
+
+DRIVERS_DIR = Path(__file__).resolve().parent.parent / "drivers"
+CARD = "card.json"
+# The metrics a card reports, in its order: MetaDrive's episode outcomes and how far the car got.
+CARD_METRICS = ("success_rate", "crash_rate", "out_of_road_rate", "route_completion")
+
+
+def shipped_drivers() -> list[str]:
+    """Names of the drivers inside the package."""
+    return sorted(p.parent.name for p in DRIVERS_DIR.glob(f"*/{CARD}"))
+
+
+def file_sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def read_card(directory: Path) -> dict:
+    try:
+        card = json.loads((directory / CARD).read_text())
+    except (OSError, ValueError) as exc:
+        raise DrivelabError(f"model card {directory / CARD} cannot be read: {exc}") from None
+    if not isinstance(card, dict) or not isinstance(card.get("files"), dict):
+        raise DrivelabError(f"model card {directory / CARD} has no 'files' table of sha256 hashes")
+    return card
+
+
+def verify_files(directory: Path, card: dict) -> None:
+    """Every file the card lists exists and has the card's sha256 (one line otherwise)."""
+    for name, expected in card["files"].items():
+        path = directory / name
+        if not path.is_file():
+            raise DrivelabError(f"driver {directory}: file {name} named by its model card is missing")
+        if file_sha256(path) != expected:
+            raise DrivelabError(f"driver {directory}: file {name} does not match the sha256 in its model card "
+                                "(changed or corrupted; reinstall drivelab or download the driver again)")
+
+
+def resolve_policy_path(path: str | Path) -> Path:
+    """A shipped driver's name -> its directory; any other path unchanged. A directory with a
+    model card is verified against it (file hashes) before anything loads it."""
+    candidate = Path(path)
+    if not candidate.exists() and str(path) in shipped_drivers():
+        candidate = DRIVERS_DIR / str(path)
+    if (candidate / CARD).is_file():
+        verify_files(candidate, read_card(candidate))
+    return candidate
+
+
+def check_observation_layout(directory: Path, observation_space: gym.Space) -> None:
+    """Refuse an env whose observations are not laid out as the driver's were in training."""
+    if not (directory / CARD).is_file():
+        return
+    card = read_card(directory)
+    trained = tuple(card.get("observation_shape") or ())
+    if trained and trained != tuple(observation_space.shape):
+        raise DrivelabError(f"driver {card.get('name', directory)} was trained on observations of shape {trained} "
+                            f"({card.get('observation', 'see its card')}), this env gives {tuple(observation_space.shape)}: "
+                            "evaluate it on an env with the same observation layout")
+
+
+def format_card(card: dict) -> str:
+    """The model card as text (``drivelab eval NAME --card``, ``drivelab models``)."""
+    train = card.get("training", {})
+    lines = [f"{card.get('name')}: {card.get('summary', '')}",
+             f"  algorithm   {train.get('algo')} (config {train.get('config')}), seed {train.get('seed')}",
+             f"  training    checkpoint at {train.get('steps'):,} env steps of a run of "
+             f"{train.get('steps_trained', train.get('steps')):,} steps, {train.get('minutes')} min on {train.get('machine')}",
+             f"  software    drivelab {train.get('drivelab_commit')}, metadrive-simulator {train.get('metadrive_version')}",
+             f"  reproduce   {train.get('reproduce')}",
+             f"  observation {card.get('observation')} {tuple(card.get('observation_shape', ()))}"]
+    evaluation = card.get("evaluation", {})
+    if evaluation:
+        lines.append(f"  evaluation  {evaluation.get('protocol')}")
+        header = "    {:<18}" + "{:>22}" * len(CARD_METRICS)
+        lines.append(header.format("policy", *CARD_METRICS))
+        for who, result in evaluation.get("policies", {}).items():
+            cells = [f"{result[m]['mean']:.3f} ± {result[m]['ci95']:.3f}" for m in CARD_METRICS if m in result]
+            lines.append(header.format(who, *cells))
+    return "\n".join(lines)
+
+
+def model_card(path: str | Path) -> str:
+    """The model card of a driver (a shipped name or a directory), verified and formatted."""
+    directory = resolve_policy_path(path)
+    if not (directory / CARD).is_file():
+        raise DrivelabError(f"{path} has no model card ({CARD}); drivelab models lists the shipped drivers")
+    return format_card(read_card(directory))
+
+
+def card_metrics(per_episode: dict[str, list[float]]) -> dict[str, dict[str, float]]:
+    """{metric: {mean, ci95}} of per-episode outcomes (95% CI of the mean, Student's t)."""
+    from drivelab.training.plots import mean_and_ci95
+
+    out = {}
+    for name in CARD_METRICS:
+        if name in per_episode:
+            mean, half = mean_and_ci95(np.asarray(per_episode[name], float))
+            out[name] = {"mean": round(float(mean), 4), "ci95": round(float(half), 4)}
+    return out
+
+
+def write_driver(out: Path, policy_dir: Path, card: dict) -> Path:
+    """Write a driver directory: the policy files in ``policy_dir`` (as ``TrainedPolicy.save``
+    wrote them) and ``card`` with their sha256 added as ``files``."""
+    out.mkdir(parents=True, exist_ok=True)
+    files = {}
+    for name in ("tensors.safetensors", "state.json"):
+        (out / name).write_bytes((policy_dir / name).read_bytes())
+        files[name] = file_sha256(out / name)
+    (out / CARD).write_text(json.dumps({**card, "files": files}, indent=1) + "\n")
+    return out

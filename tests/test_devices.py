@@ -1,0 +1,63 @@
+"""Device discipline without a GPU: every algorithm's update runs with its networks and batch on
+PyTorch's ``meta`` device, where any tensor created on the CPU beside them (a stats vector, an
+action scale, a constant) fails with "tensors on different devices", as it would on CUDA."""
+
+import gymnasium as gym
+import pytest
+import torch
+from torch import nn
+
+from drivelab.algos import a2c, ddpg, grpo, ppo, sac, td3
+from drivelab.algos.grpo import GroupBatch
+from drivelab.training.buffers import ReplayBatch
+from drivelab.training.nets import ActorCritic, OffPolicyAgent, make_target
+from drivelab.training.offpolicy import make_optimizers
+from drivelab.training.rollout import RolloutBatch
+
+META = torch.device("meta")
+OBS, ACT, B = gym.spaces.Box(-1, 1, (6,)), gym.spaces.Box(-2, 2, (2,)), 16
+
+
+def _on_meta(*shapes) -> list[torch.Tensor]:
+    return [torch.zeros(shape, device=META) for shape in shapes]
+
+
+# REINFORCE is left out: its advantage weights are computed in numpy on purpose (the returns go
+# to the host once per batch and back), which a meta tensor cannot do.
+@pytest.mark.parametrize("algo", ["ppo", "a2c", "grpo"])
+def test_on_policy_updates_keep_to_the_networks_device(algo):
+    agent = ActorCritic(OBS, ACT, [8]).to(META)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-3)
+    obs, actions, b = _on_meta((B, 6), (B, 2), (B,))
+    if algo in ("ppo", "a2c"):
+        module = ppo if algo == "ppo" else a2c
+        hp = module.Params(num_minibatches=2, update_epochs=1, target_kl=None) if algo == "ppo" else module.Params()
+        logged = module.update(agent, optimizer, RolloutBatch(obs, actions, b, b.clone(), b.clone(), b.clone()), hp)
+    else:
+        logged = grpo.update(agent, optimizer, GroupBatch(obs, actions, b, b.clone()), grpo.Params(num_minibatches=2))
+    for name, value in logged.items():
+        assert not isinstance(value, torch.Tensor) or value.device == META, name
+
+
+@pytest.mark.parametrize("algo", ["ddpg", "td3", "sac"])
+def test_off_policy_updates_and_actions_keep_to_the_networks_device(algo):
+    agent = OffPolicyAgent(OBS, ACT, [8], "relu", stochastic=algo == "sac", critics=1 if algo == "ddpg" else 2).to(META)
+    target = make_target(agent)
+    obs, actions, rewards, next_obs, terminated = _on_meta((B, 6), (B, 2), (B,), (B, 6), (B,))
+    batch = ReplayBatch(obs, actions, rewards, next_obs, terminated)
+    if algo == "sac":
+        hp = sac.Params()
+        log_alpha = nn.Parameter(torch.zeros((), device=META))
+        opt = sac.Optimizers(**make_optimizers(agent, hp)._asdict(), alpha=torch.optim.Adam([log_alpha]))
+        logged = sac.update(agent, target, log_alpha, opt, batch, hp, -2.0, update_actor=True)
+    elif algo == "td3":
+        hp = td3.Params()
+        logged = td3.update(agent, target, make_optimizers(agent, hp), batch, hp, update_actor=True)
+    else:
+        hp = ddpg.Params()
+        logged = ddpg.update(agent, target, make_optimizers(agent, hp), batch, hp)
+    for name, value in logged.items():
+        assert not isinstance(value, torch.Tensor) or value.device == META, name
+    # an action computed as numpy in the trainer, mapped to the env's bounds by the agent
+    with pytest.raises(NotImplementedError):  # meta tensors have no data: it got that far on the agent's device
+        agent.to_env(torch.zeros(3, 2))
