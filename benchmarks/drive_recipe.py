@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from drivelab.api import baseline_env, build_config, evaluate_baseline, evaluate_checkpoint, train
-from drivelab.config import read_yaml
+from drivelab.config import merge_overrides, parse_value, read_yaml
 from drivelab.training.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
 from drivelab.training.plots import mean_and_ci95, read_metrics
 
@@ -37,12 +37,12 @@ HELDOUT_ENV, EPISODES = "MetaDrive-validation-v0", 200
 METRICS = ("success_rate", "crash_rate", "out_of_road_rate", "route_completion")
 
 
-def train_seed(config: str, seed: int, run_dir: Path) -> dict:
+def train_seed(config: str, seed: int, run_dir: Path, overrides: dict | None = None) -> dict:
     """Train (or finish) one seed; its wall clock and steps are kept in RUN/training.json."""
     record = run_dir / "training.json"
     if record.is_file():
         return json.loads(record.read_text())
-    cfg = build_config({**read_yaml(config), "seed": seed, "run_dir": str(run_dir)})
+    cfg = build_config(merge_overrides({**read_yaml(config), "seed": seed, "run_dir": str(run_dir)}, overrides or {}))
     started = time.perf_counter()
     train(cfg, resume=bool(list_checkpoints(run_dir)))
     result = {"minutes": round((time.perf_counter() - started) / 60, 2),
@@ -108,14 +108,17 @@ def main() -> int:
     parser.add_argument("--runs", type=Path, default=Path("runs/drive"))
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/drive_recipe.json"))
     parser.add_argument("--skip-train", action="store_true", help="only evaluate the seeds already trained")
+    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                        help="config overrides for an ablation arm, e.g. td3.noise_decay_steps=200000")
     args = parser.parse_args()
+    overrides = {key: parse_value(value) for key, _, value in (item.partition("=") for item in args.set)}
     previous = json.loads(args.out.read_text()) if args.out.is_file() else {}
     runs, table = {}, {}
     for seed in args.seeds:
         run_dir = args.runs / f"seed_{seed}"
         if args.skip_train and not (run_dir / "training.json").is_file():
             continue
-        trained = train_seed(args.config, seed, run_dir)
+        trained = train_seed(args.config, seed, run_dir, overrides)
         table[str(seed)] = {**trained, **{k: v for k, v in heldout(run_dir).items() if k != "per_episode"}}
         runs[seed] = run_dir
         print(json.dumps({"seed": seed, **table[str(seed)]}), flush=True)
@@ -129,7 +132,7 @@ def main() -> int:
         values = np.array([row[metric] for row in table.values()], float)
         mean, half = mean_and_ci95(values)
         summary[metric] = {"mean": float(mean), "ci95": float(half), "min": float(values.min()), "max": float(values.max())}
-    result = {"benchmark": "drive-recipe", "config": args.config, "metadrive_version": version("metadrive-simulator"),
+    result = {"benchmark": "drive-recipe", "config": args.config, "overrides": overrides, "metadrive_version": version("metadrive-simulator"),
               "protocol": "train on MetaDrive-1000envs (start seed 1000, 1000 scenarios); report checkpoints/best, "
                           "chosen on validation scenarios 200-229 during training, on the 200 unseen scenarios "
                           "0-199 (MetaDrive-validation-v0, default traffic, deterministic actions)",

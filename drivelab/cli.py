@@ -73,6 +73,9 @@ def _train_parser(sub, epilog: str | None = None) -> None:
     p.add_argument("--num-envs", type=int, help="parallel environments")
     p.add_argument("--actions", metavar="NxM", help="discretise [steering, throttle] into N x M actions (env.action_grid)")
     p.add_argument("--mlflow", action="store_true", help="also track with MLflow")
+    p.add_argument("--wandb", action="store_true", help="also track with Weights & Biases (offline without an API key; "
+                                                       "pip install 'drivelab[wandb]')")
+    p.add_argument("--wandb-project", help="W&B project (default: drivelab)")
     p.add_argument("--mlflow-uri", help="MLflow tracking URI (default: sqlite:///<run dir's parent>/mlflow.db, "
                                         "e.g. runs/mlflow.db, shared by the runs beside it)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -88,6 +91,14 @@ def _sweep_parser(sub) -> None:
     p.add_argument("config", help="YAML config file or shipped config name; its optional `sweep:` section holds a grid and seeds")
     p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2", help="a config field and its values (repeatable)")
     p.add_argument("--seeds", help="e.g. 0-4 or 0,1,2 (default: the config's sweep.seeds, else 0)")
+    p.add_argument("--space", action="append", default=[], metavar="KEY=DIST:A,B",
+                   help="search instead of a grid: a config field and its distribution, loguniform|uniform|int:LOW,HIGH "
+                        "or choice:V1,V2 (repeatable); Optuna picks the values")
+    p.add_argument("--trials", type=int, help="search: how many runs Optuna samples (default 8)")
+    p.add_argument("--metric", help="search: the logged metric that ranks the trials (default eval/return_mean)")
+    p.add_argument("--mode", choices=["max", "min"], help="search: maximise or minimise --metric (default max)")
+    p.add_argument("--asha", action="store_true", default=None,
+                   help="search: stop the trials that trail at an evaluation (ASHA early stopping)")
     p.add_argument("--steps", type=int, help="env steps per run (overrides the config)")
     p.add_argument("--out", help="sweep directory (default runs/sweep-<config name>)")
     p.add_argument("--ray-address", help="Ray cluster to run on (default: a local Ray instance)")
@@ -177,6 +188,7 @@ def _train_overrides(args: argparse.Namespace, extra: dict[str, Any]) -> dict[st
         "algo": args.algo, "env.id": args.env, "steps": args.steps, "seed": args.seed, "run_dir": args.run_dir,
         "env.num_envs": args.num_envs, "env.action_grid": args.actions,
         "track.mlflow": True if args.mlflow else None, "track.mlflow_uri": args.mlflow_uri,
+        "track.wandb": True if args.wandb else None, "track.wandb_project": args.wandb_project,
         "ray_address": args.ray_address,
     }
     return {k: v for k, v in flags.items() if v is not None} | extra
@@ -200,10 +212,24 @@ def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from drivelab.tools.sweep import format_summary, load_sweep, run_sweep
+    from drivelab.tools.sweep import format_search, format_summary, load_search, load_sweep, run_search, run_sweep
 
-    base, grid, seeds = load_sweep(args.config, args.grid, args.seeds, args.steps)
     out = Path(args.out or Path("runs") / f"sweep-{Path(args.config).stem}")
+    searched = load_search(args.config, args.space, args.seeds, args.steps, trials=args.trials, metric=args.metric,
+                           mode=args.mode, asha=args.asha)
+    if searched is not None:
+        if args.grid:
+            raise DrivelabError("give --grid or --space (a search), not both")
+        base, search, seed = searched
+        summary = run_search(base, search, seed, out, train=api.train, ray_address=args.ray_address,
+                             cpus_per_trial=args.cpus_per_trial, max_concurrent=args.max_concurrent)
+        print(format_search(summary))
+        if "best" in summary:
+            best = summary["best"]
+            print(f"best: {best['run']} ({search.metric} {best['metric']:.4g}); search saved in {out} "
+                  "(sweep.json, sweep.md, curves.png, one run directory per trial)")
+        return 0 if "best" in summary else 1
+    base, grid, seeds = load_sweep(args.config, args.grid, args.seeds, args.steps)
     summary = run_sweep(base, grid, seeds, out, train=api.train, ray_address=args.ray_address,
                         cpus_per_trial=args.cpus_per_trial, max_concurrent=args.max_concurrent)
     print(format_summary(summary))

@@ -42,6 +42,9 @@ class EvalConfig:
     """Periodic deterministic evaluation during training, in its own env (subprocess for MetaDrive)."""
     every: int = 0                 # env steps between evaluations (0: never)
     episodes: int = 10
+    # Also evaluate when the run ends (steps or max_minutes reached) between two evaluations, so
+    # that checkpoints/best weighs the final policy too (with eval.every > 0).
+    final: bool = False
     # Another env id for held-out evaluation (e.g. MetaDrive-validation-v0); None: the training
     # env. With another id the training env's kwargs are dropped (they may redefine the
     # scenarios) and `kwargs` is used instead; wrappers (action grid, filters, reward) are kept.
@@ -65,6 +68,12 @@ class TrackConfig:
     # (runs/mlflow.db for runs/NAME), with artifacts in <run dir's parent>/mlartifacts.
     mlflow_uri: str | None = None
     experiment: str = "drivelab"
+    # Weights & Biases (pip install 'drivelab[wandb]'): files in RUN/wandb. Without an API key
+    # (`wandb login`, WANDB_API_KEY) it logs offline; `wandb sync RUN/wandb/offline-run-*` uploads later.
+    wandb: bool = False
+    wandb_project: str = "drivelab"
+    wandb_entity: str | None = None
+    wandb_mode: str | None = None     # online | offline | disabled; None: WANDB_MODE, else online with a key
 
 
 @dataclass
@@ -306,7 +315,24 @@ def parse_config(data: dict, algo_params: Mapping[str, type], where: str = "conf
     cfg.algo_params = _from_dict(algo_params[algo], params, f"{where} section '{algo}'")
     _validate(cfg)
     _fit_heat_up(cfg)
+    _fit_steps(cfg)
     return cfg
+
+
+def _fit_steps(cfg: TrainConfig) -> None:
+    """Round ``steps`` up to the algorithm's iteration (PPO and A2C: a rollout of ``num_steps``
+    in each env; DDPG, TD3 and SAC: one step of each env), with one line, so that the run ends
+    at the number its config, progress bar and report state. REINFORCE and GRPO update on whole
+    episodes: their last batch is cut to the steps left, and the run ends with its episodes."""
+    iteration_steps = getattr(cfg.algo_params, "iteration_steps", None)
+    if iteration_steps is None or cfg.steps == 0:
+        return
+    size = iteration_steps(cfg.env.num_envs)
+    rounded = -(-cfg.steps // size) * size
+    if rounded != cfg.steps:
+        print(f"drivelab: note: steps {cfg.steps} -> {rounded}, a whole number of {cfg.algo} iterations "
+              f"of {size} env steps", file=sys.stderr)
+        cfg.steps = rounded
 
 
 def _fit_heat_up(cfg: TrainConfig) -> None:
@@ -320,6 +346,25 @@ def _fit_heat_up(cfg: TrainConfig) -> None:
     print(f"drivelab: warning: {cfg.algo}.learning_starts ({heat_up}) is not below steps ({cfg.steps}), so the run "
           f"would never update: its heat-up is {cfg.algo_params.learning_starts} steps instead "
           f"(set --{cfg.algo}.learning_starts to choose)", file=sys.stderr)
+
+
+def resolve_device(cfg: TrainConfig) -> None:
+    """The one place that decides where a run trains (its tensors all follow ``cfg.device``):
+    ``auto`` becomes cuda when torch sees one, else cpu; a CUDA device this machine lacks is
+    refused in one line. Only training asks: a config saved by a GPU run still parses here, so
+    its checkpoints load, evaluate and export on a CPU-only machine (safetensors hold no device)."""
+    if cfg.device == "cpu":
+        return
+    import torch
+
+    if cfg.device == "auto":
+        cfg.device = "cuda" if torch.cuda.is_available() else "cpu"
+    elif not torch.cuda.is_available():
+        raise DrivelabError(f"config field 'device' is {cfg.device!r}, but this torch build sees no CUDA device "
+                            f"(on a CPU-only machine: --device cpu)")
+    elif int(cfg.device.partition(":")[2] or 0) >= torch.cuda.device_count():
+        raise DrivelabError(f"config field 'device' is {cfg.device!r}, but this machine has "
+                            f"{torch.cuda.device_count()} CUDA device(s)")
 
 
 def _validate(cfg: TrainConfig) -> None:
@@ -342,22 +387,14 @@ def _validate(cfg: TrainConfig) -> None:
         ("eval.episodes", cfg.eval.episodes >= 1, "must be >= 1"),
         ("eval.num_envs", cfg.eval.num_envs >= 1, "must be >= 1"),
         ("eval.backend", cfg.eval.backend in ("local", "ray"), "must be local or ray"),
+        ("track.wandb_mode", cfg.track.wandb_mode in (None, "online", "offline", "disabled"),
+         "must be online, offline or disabled"),
         ("device", cfg.device in ("cpu", "auto") or re.fullmatch(r"cuda(:\d+)?", cfg.device) is not None,
          "must be cpu, cuda[:N] or auto"),
     ]
     for name, ok, message in checks:
         if not ok:
             raise DrivelabError(f"config field '{name}' {message}")
-    if cfg.device != "cpu":  # the one place that decides the device: a run's tensors all follow cfg.device
-        import torch
-
-        if cfg.device == "auto":
-            cfg.device = "cuda" if torch.cuda.is_available() else "cpu"
-        elif not torch.cuda.is_available():
-            raise DrivelabError(f"config field 'device' is {cfg.device!r}, but this torch build sees no CUDA device; use cpu")
-        elif int(cfg.device.partition(":")[2] or 0) >= torch.cuda.device_count():
-            raise DrivelabError(f"config field 'device' is {cfg.device!r}, but this machine has "
-                                f"{torch.cuda.device_count()} CUDA device(s)")
     if cfg.run_dir is not None:
         _check_writable(Path(cfg.run_dir))
     _check_hyperparameters(cfg.algo, cfg.algo_params)

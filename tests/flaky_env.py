@@ -86,6 +86,12 @@ class TallyEnv(gym.Env):
         return self._obs(), reward, ended and self.episode % 2 == 0, ended and self.episode % 2 == 1, {}
 
 
+def late_step_bonus(info: dict, prev: dict | None, after: int = 2) -> float:
+    """A user's reward term (``flaky_env:late_step_bonus``): 1 for each step past ``after`` in
+    the episode, read from the observation drivelab hands the term."""
+    return 1.0 if info["observation"][1] > after else 0.0
+
+
 def make_tally(**kwargs) -> TallyEnv:
     """A factory, as the API accepts one."""
     return TallyEnv(**kwargs)

@@ -8,7 +8,7 @@ from drivelab.cli import build_parser, cmd_train, parse_overrides, parse_value
 from drivelab.api import build_config
 from drivelab.config import TrainConfig, config_to_dict, merge_overrides, read_yaml, save_config
 from drivelab.errors import DrivelabError
-from drivelab.tools.sweep import plan, trial_config
+from drivelab.tools.sweep import Trial, plan, trial_config
 
 
 def test_defaults_and_algo_section():
@@ -138,6 +138,13 @@ def test_every_shipped_config_builds(path):
     if sweep is None:
         cfg = build_config(raw)
         assert cfg.algo == raw["algo"] and cfg.steps > 0
+        return
+    if "search" in sweep:                                 # a search: its space, and the config at a corner of it
+        from drivelab.tools.sweep import load_search
+
+        base, search, seed = load_search(path)
+        corner = {key: spec[1] if spec[0] != "int" else int(spec[1]) for key, spec in search.space.items()}
+        assert build_config(trial_config(base, Trial(corner, seed), Path("unused"))).steps > 0
         return
     for trial in plan(sweep["grid"], sweep["seeds"]):     # every run the sweep would start
         cfg = build_config(trial_config(raw, trial, Path("unused")))

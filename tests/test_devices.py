@@ -3,6 +3,7 @@ PyTorch's ``meta`` device, where any tensor created on the CPU beside them (a st
 action scale, a constant) fails with "tensors on different devices", as it would on CUDA."""
 
 import gymnasium as gym
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -61,3 +62,41 @@ def test_off_policy_updates_and_actions_keep_to_the_networks_device(algo):
     # an action computed as numpy in the trainer, mapped to the env's bounds by the agent
     with pytest.raises(NotImplementedError):  # meta tensors have no data: it got that far on the agent's device
         agent.to_env(torch.zeros(3, 2))
+
+
+def test_a_checkpoint_from_a_gpu_run_loads_evaluates_exports_and_resumes_on_the_cpu(tmp_path, capsys):
+    """A GPU run's files differ from a CPU run's only in the device its config names (safetensors
+    store no device): such a run, made here by rewriting a CPU run's device, must evaluate, export
+    and load on a CPU-only machine, and resume there when asked to with --device cpu."""
+    import json
+
+    import yaml
+
+    import drivelab
+    from drivelab.cli import main
+    from drivelab.training.checkpoint import checkpoint_step, resolve_checkpoint
+
+    run = tmp_path / "gpu_run"
+    drivelab.train("ppo", "CartPole-v1", steps=256, seed=0, run_dir=run, progress=False, ppo={"num_steps": 128})
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    (run / "config.yaml").write_text(yaml.safe_dump({**config, "device": "cuda:0"}, sort_keys=False))
+    for state_file in run.glob("checkpoints/*/state.json"):
+        state = json.loads(state_file.read_text())
+        state["config"]["device"] = "cuda:0"
+        state_file.write_text(json.dumps(state))
+
+    def cli(*argv: str) -> int:
+        with pytest.raises(SystemExit) as exit_:
+            main(list(argv))
+        return exit_.value.code or 0
+
+    assert drivelab.load(run).predict(np.zeros(4, np.float32))[0].shape == ()
+    assert cli("eval", str(run), "--episodes", "2", "--json") == 0
+    assert cli("export", str(run), "--format", "torchscript", "--out", str(tmp_path / "x")) == 0
+    capsys.readouterr()
+    if not torch.cuda.is_available():
+        assert cli("train", "--resume", str(run), "--steps", "2048", "--no-progress") == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "--device cpu" in err
+    assert cli("train", "--resume", str(run), "--steps", "2048", "--device", "cpu", "--no-progress") == 0
+    assert checkpoint_step(resolve_checkpoint(run)) == 2048

@@ -59,6 +59,31 @@ def _check_metadrive_id():
     assert _metadrive_files() == before, "nothing may be written into MetaDrive's installation"
 
 
+def test_a_metadrive_video_frame_follows_the_car_heading_up(fresh_process):
+    fresh_process(_check_video_frame)
+
+
+def _check_video_frame():
+    from drivelab.training.video import overlay
+
+    env = make_env(EnvConfig(id="MetaDrive-validation-v0"), render_mode="rgb_array")
+    try:
+        env.reset(seed=3)
+        for t in range(60):  # straight on, then into a left bend: the view turns with the car
+            env.step(np.array([0.0 if t < 30 else 0.3, 0.5], np.float32))
+            if t in (29, 59):
+                frame = overlay(env.render(), ["episode 0  step 1  return 0.0", "speed 20 km/h"])
+                ego = np.array(env.unwrapped.metadrive.agent.top_down_color)
+                rows, cols = np.nonzero((np.abs(frame.astype(float) - ego) <= 3).all(axis=-1))
+                height, width = frame.shape[:2]
+                assert frame.shape == (400, 400, 3) and len(rows) > 50, "the ego car is drawn"
+                assert height / 3 <= rows.mean() <= 2 * height / 3 and width / 3 <= cols.mean() <= 2 * width / 3, \
+                    f"ego car at ({rows.mean():.0f}, {cols.mean():.0f}), outside the central third"
+                assert np.ptp(rows) > 1.5 * np.ptp(cols), "the car points up the frame"
+    finally:
+        env.close()
+
+
 def test_seed_selects_scenario_within_the_split():
     env = gym.make("MetaDrive-10env-v0", traffic_density=0.0)
     try:

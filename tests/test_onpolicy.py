@@ -180,7 +180,7 @@ def test_grpo_members_of_a_group_start_from_the_same_state_and_wait_masked(tmp_p
     agent = grpo.build_policy(cfg, obs_space, act_space)
     storage = EpisodeStorage(8, 6, obs_space, act_space)
     try:
-        rounds, steps, length = grpo.collect_group_rounds(envs, agent, storage, cfg.algo_params, run)
+        rounds, steps, length = grpo.collect_group_rounds(envs, agent, storage, cfg.algo_params, run, cfg.algo_params.batch_steps)
     finally:
         envs.close()
         run.close()

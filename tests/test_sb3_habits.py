@@ -91,3 +91,67 @@ def test_an_env_instance_or_a_main_module_class_is_refused_in_one_line():
     main_class = type("Corridor", (flaky_env.TallyEnv,), {"__module__": "__main__"})
     with pytest.raises(DrivelabError, match="defined in __main__"):
         drivelab.train("ppo", main_class, steps=64)
+
+
+@pytest.mark.parametrize("algo, overrides", [
+    ("ppo", {"ppo": {"num_steps": 64}}),                                              # rollouts of 64 x 2
+    ("td3", {"td3": {"act_in_workers": True, "chunk_steps": 8, "learning_starts": 20}, "env.backend": "async"}),
+    ("reinforce", {"reinforce": {"batch_steps": 100}}),                               # whole episodes
+])
+def test_steps_ends_the_run_where_its_config_progress_and_report_say(tmp_path, capsys, algo, overrides):
+    from drivelab.training.checkpoint import load_checkpoint
+    from drivelab.training.plots import read_metrics
+
+    result = drivelab.train(algo, "flaky_env:Tally-v0", steps=301, seed=0, num_envs=2, run_dir=tmp_path / "run",
+                            progress=False, log_every=50, **overrides)
+    stated = int(yaml_field(result.run_dir / "config.yaml", "steps"))
+    trained = load_checkpoint(result.run_dir).step
+    logged = max(int(steps[-1]) for steps, _, _ in read_metrics(result.run_dir).values())
+    err = capsys.readouterr().err
+    if algo == "reinforce":
+        # the last batch asks for the 1 step left; its 2 episodes in flight end (<= 11 steps each)
+        assert stated == 301 and 301 <= trained <= 301 + 2 * 11 and logged == trained
+        assert trained == 301 or f"{trained:,} env steps trained" in err
+    else:
+        assert stated == trained == logged == (384 if algo == "ppo" else 302)
+        assert f"steps 301 -> {stated}" in err
+
+
+def yaml_field(path: Path, field: str):
+    import yaml
+
+    return yaml.safe_load(path.read_text())[field]
+
+
+def test_reward_terms_shape_any_env_and_a_module_function_term_is_the_users_own(tmp_path):
+    from drivelab.config import EnvConfig
+    from drivelab.envs import make_env
+
+    reward = {"native": {"weight": 0.5}, "flaky_env:late_step_bonus": {"weight": 3.0, "after": 1}}
+    env = make_env(EnvConfig(id="flaky_env:Tally-v0", reward=reward))
+    env.reset(seed=0)
+    rewards = [env.step(np.array([0.0], np.float32))[1] for _ in range(3)]
+    assert rewards == [0.5 * 0.0, 0.5 * 10.0 + 3.0, 0.5 * 20.0 + 3.0]   # native: 10 t; bonus once obs t > 1
+    env.close()
+    # in subprocess env workers and through training, as a config names it
+    result = drivelab.train("ppo", {"id": "flaky_env:Tally-v0", "reward": reward, "backend": "async", "num_envs": 2},
+                            steps=128, seed=0, run_dir=tmp_path / "run", progress=False, ppo={"num_steps": 64})
+    assert result.metrics["episode/reward/flaky_env:late_step_bonus"] > 0
+    with pytest.raises(DrivelabError, match="reward term 'cte' needs info\\['cte'\\]"):
+        bad = make_env(EnvConfig(id="CartPole-v1", reward={"cte": {}}))
+        bad.reset(seed=0)
+        bad.step(0)
+    with pytest.raises(DrivelabError, match="has no 'missing'"):
+        make_env(EnvConfig(id="CartPole-v1", reward={"flaky_env:missing": {}}))
+
+
+def test_the_custom_env_example_trains_and_evaluates(tmp_path):
+    import subprocess
+    import sys
+
+    example = Path(__file__).resolve().parent.parent / "examples" / "custom_env.py"
+    done = subprocess.run([sys.executable, str(example), "--steps", "4000", "--run-dir", str(tmp_path / "toy")],
+                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "steps on the lane on average" in done.stdout
+    assert "custom_env:LaneKeepingToy" in (tmp_path / "toy" / "config.yaml").read_text()

@@ -7,7 +7,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from drivelab.training.checkpoint import resolve_checkpoint
+from drivelab.training.checkpoint import checkpoint_step, resolve_checkpoint
 from drivelab.api import build_config
 from drivelab.api import evaluate_checkpoint
 from drivelab.api import train
@@ -36,7 +36,9 @@ def test_same_seed_same_metrics_and_interrupted_run_resumes_exactly(tmp_path):
     train(_cartpole(again, 6000), progress=False)
     assert _metrics(straight) == _metrics(again), "same seed -> identical metrics"
 
-    train(_cartpole(split, 3000), progress=False)          # "killed" after ~3000 steps
+    # "killed" after ~3000 steps (stopped by a callback: the same config, as a requeued job has)
+    train(_cartpole(split, 6000), progress=False, callback=lambda event: event.step < 3000)
+    assert 3000 <= checkpoint_step(resolve_checkpoint(split)) < 6000
     with open(split / "metrics.csv", "a") as f:            # a row written after the last checkpoint
         f.write("999999,0,episode/return,1\n")
     train(run_dir=split, resume=True, steps=6000, progress=False)   # the run's saved config, as `train --resume`
@@ -58,6 +60,19 @@ def test_mlflow_tracking_in_the_project_store_beside_the_run_directories(tmp_pat
     client = mlflow.MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")   # one store per project
     run = client.get_run(run_id)
     assert "episode/return" in run.data.metrics and run.data.params["reinforce.lr"] == "0.01"
+
+
+def test_wandb_tracking_offline_writes_its_run_files_and_a_resumed_run_continues_it(tmp_path):
+    pytest.importorskip("wandb")
+    run_dir = tmp_path / "wb"
+    track = {"wandb": True, "wandb_mode": "offline", "wandb_project": "drivelab-test"}
+    train(_cartpole(run_dir, 1000, track=track), progress=False)
+    run_id = (run_dir / "wandb_run_id").read_text().strip()
+    train(run_dir=run_dir, resume=True, steps=2000, progress=False)
+    runs = sorted((run_dir / "wandb").glob(f"offline-run-*-{run_id}"))
+    assert runs, "the offline run lies in RUN/wandb"
+    logged = b"".join(path.read_bytes() for run in runs for path in run.glob("*.wandb"))
+    assert b"episode/return" in logged and b"loss/policy" in logged and b"reinforce" in logged
 
 
 def test_evaluation_is_deterministic_and_reports_json_keys(tmp_path):
@@ -141,3 +156,15 @@ def test_updates_run_with_update_threads_and_collection_goes_back_to_torch_threa
     assert torch.get_num_threads() == outside and timing.update.seconds > 0
     with Timing().update:            # None: the update keeps torch_threads
         assert torch.get_num_threads() == outside
+
+
+def test_eval_final_weighs_the_policy_the_run_ends_with(tmp_path):
+    from drivelab.training.plots import read_metrics
+
+    for final, expected in ((False, [256]), (True, [256, 384])):
+        run_dir = tmp_path / f"final_{final}"
+        train(build_config({"algo": "ppo", "steps": 384, "seed": 0, "run_dir": str(run_dir),
+                            "env": {"id": "CartPole-v1", "num_envs": 2}, "ppo": {"num_steps": 64},
+                            "eval": {"every": 256, "episodes": 2, "final": final}}), progress=False)
+        steps, _, _ = read_metrics(run_dir)["eval/return_mean"]
+        assert list(steps) == expected

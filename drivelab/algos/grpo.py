@@ -101,8 +101,8 @@ def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -
 
 @torch.no_grad()
 def collect_group_rounds(envs: VectorEnv, agent: ActorCritic, storage: EpisodeStorage, hp: Params,
-                         run: Run) -> tuple[list[Round], int, int]:
-    """Play group rounds until ``hp.batch_steps`` steps are recorded and every round is complete.
+                         run: Run, min_steps: int) -> tuple[list[Round], int, int]:
+    """Play group rounds until ``min_steps`` steps are recorded and every round is complete.
 
     Fills ``storage`` rows [0, T): ``tag[t, i]`` is the index (into the returned list) of the
     round member i was playing at step t, and ``recorded`` marks the steps of those episodes.
@@ -156,7 +156,7 @@ def collect_group_rounds(envs: VectorEnv, agent: ActorCritic, storage: EpisodeSt
         if finished.any():
             recording[finished] = False
             complete = [g for g in np.unique(groups[finished]) if not recording[groups == g].any()]
-            if complete and recorded_steps < hp.batch_steps:
+            if complete and recorded_steps < min_steps:
                 new_members, seeds = start_rounds(complete, t + 1)
                 reset |= new_members
         if reset.any():
@@ -238,8 +238,10 @@ def train(cfg: TrainConfig, run: Run) -> None:
             if hp.anneal_lr:
                 set_learning_rate(optimizer, linear_decay(hp.lr, run.step, cfg.steps))
             std_log = limit_log_std(agent.actor, hp, run.step, cfg.steps)  # optional std schedule
-            # 1. Group rounds (members of a group share a start seed) until batch_steps are recorded.
-            rounds, steps, length = collect_group_rounds(envs, agent, storage, hp, run)
+            # 1. Group rounds (members of a group share a start seed) until batch_steps are recorded
+            #    (the last batch: the steps left; its rounds in flight still end).
+            budget = min(hp.batch_steps, run.steps_left)
+            rounds, steps, length = collect_group_rounds(envs, agent, storage, hp, run, budget)
             # 2. Each recorded step's advantage relative to its group: no critic.
             advantages = group_advantages(storage, rounds, length, hp)
             mask = storage.recorded[:length]

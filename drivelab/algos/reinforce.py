@@ -154,7 +154,9 @@ def train(cfg: TrainConfig, run: Run) -> None:
         while not run.done:
             std_log = limit_log_std(policy, hp, run.step, cfg.steps)  # optional std schedule
             # 1. Whole episodes until batch_steps steps are recorded; discounted rewards-to-go.
-            batch, steps = collect_episodes(envs, policy, storage, hp.batch_steps, hp.gamma, run)
+            #    The last batch asks only for the steps left (its episodes in flight still end).
+            budget = min(hp.batch_steps, run.steps_left)
+            batch, steps = collect_episodes(envs, policy, storage, budget, hp.gamma, run)
             # 2. One policy-gradient step.
             with run.timing.update:
                 run.record(update(policy, optimizer, batch, hp))

@@ -20,6 +20,7 @@ Its envs' episodes end as *truncated* with their last observation (the other act
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import threading
@@ -49,6 +50,8 @@ def connect(address: str | None = None) -> None:
     ray = import_ray()
     if ray.is_initialized():
         return
+    # Ray's token-authentication notice on every local start: drivelab's output stays its own
+    logging.getLogger("ray._private.authentication").setLevel(logging.ERROR)
     in_main_thread = threading.current_thread() is threading.main_thread()
     handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)} if in_main_thread else {}
     try:

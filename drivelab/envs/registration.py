@@ -85,6 +85,22 @@ def registered_id(env_id: str) -> str:
     return own_id
 
 
+def import_attribute(reference: str, what: str):
+    """``"module:name"`` -> that object of that module (found as an env module is), or one line
+    that says why not; ``what`` names the config field for that line."""
+    module, colon, name = reference.rpartition(":")
+    if not colon or not module or not name:
+        raise DrivelabError(f"{what}: expected 'module:name', got {reference!r}")
+    try:
+        imported = _import(module)
+    except Exception as exc:  # any failure, reported in one line
+        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DrivelabError(f"{what}: could not import module '{module}' ({detail})") from None
+    if not hasattr(imported, name):
+        raise DrivelabError(f"{what}: module '{module}' has no '{name}'")
+    return getattr(imported, name)
+
+
 def _import(module: str):
     try:
         return importlib.import_module(module)

@@ -14,10 +14,18 @@ report: ``cte``, ``heading_error``, ``speed``, ``speed_along_lane``, ``collided`
 progress). :class:`RewardShaping` replaces the env's reward by the weighted sum, reports each
 term's episode sum as ``info["reward/<term>"]`` (logged as ``episode/reward/<term>``, so a user
 sees which term drives the behaviour), and ends the episode where a term says so.
+
+Any env can be shaped: a term needs only the info keys it reads (``native`` and ``idle`` work
+wherever the env reports its reward, or ``speed``), and a term named ``module:function`` is
+the user's own: ``function(info, prev, **params)`` returns a float or a :class:`TermResult`,
+with the env's ``native_reward``, the ``observation`` and the ``action`` added to ``info``::
+
+    reward: {native: {}, "my_rewards:upright_bonus": {weight: 0.5, threshold: 0.1}}
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -93,20 +101,43 @@ TERMS: dict[str, Callable[..., TermResult]] = {
 }
 
 
+# The info keys each shipped term reads: a term is refused, in one line, on an env that lacks them.
+NEEDS: dict[str, tuple[str, ...]] = {
+    "cte": ("cte",), "lane": ("cte", "heading_error", "speed"), "native": (), "progress": ("route_completion",),
+    "idle": ("speed",),
+}
+
+
+@functools.lru_cache(maxsize=None)
+def term_function(name: str, where: str = "env.reward") -> Callable[..., TermResult | float]:
+    """A shipped term, or the function a ``module:function`` term names."""
+    if name in TERMS:
+        return TERMS[name]
+    if ":" not in name:
+        raise DrivelabError(f"{where}: unknown reward term '{name}' (choose from {', '.join(TERMS)}, "
+                            f"or name your own as module:function)")
+    from drivelab.envs.registration import import_attribute
+
+    function = import_attribute(name, f"{where}.{name}")
+    if not callable(function):
+        raise DrivelabError(f"{where}.{name} is not a function")
+    return function
+
+
 def validate_reward_config(config: dict[str, Any], where: str = "env.reward") -> dict[str, dict]:
     """Check term names and parameters; returns {term: params} with ``weight`` split off later."""
     if not isinstance(config, dict) or not config:
-        raise DrivelabError(f"{where} must map reward terms ({', '.join(TERMS)}) to their parameters")
+        raise DrivelabError(f"{where} must map reward terms ({', '.join(TERMS)}, or module:function) to their parameters")
     clean = {}
     for name, params in config.items():
-        if name not in TERMS:
-            raise DrivelabError(f"{where}: unknown reward term '{name}' (choose from {', '.join(TERMS)})")
+        function = term_function(name, where)
         params = dict(params or {})
         weight = params.pop("weight", 1.0)
         try:
-            TERMS[name](_PROBE_INFO, None, **params)
+            if name in TERMS:  # a user's term may read keys the probe lacks: it is called on real steps only
+                function(_PROBE_INFO, None, **params)
         except TypeError as exc:
-            raise DrivelabError(f"{where}.{name}: {exc}".replace(f"{TERMS[name].__name__}() ", "")) from None
+            raise DrivelabError(f"{where}.{name}: {exc}".replace(f"{function.__name__}() ", "")) from None
         if not isinstance(weight, (int, float)):
             raise DrivelabError(f"{where}.{name}.weight must be a number, got {weight!r}")
         clean[name] = {"weight": float(weight), **params}
@@ -123,7 +154,9 @@ def score(config: dict[str, dict], info: dict, prev: dict | None) -> tuple[float
     for name, params in config.items():
         params = dict(params)
         weight = params.pop("weight", 1.0)
-        result = TERMS[name](info, prev, **params)
+        result = term_function(name)(info, prev, **params)
+        if not isinstance(result, TermResult):  # a user's term may return a plain number
+            result = TermResult(float(result))
         parts[name] = weight * result.value
         total += parts[name]
         terminate |= result.terminate
@@ -138,9 +171,8 @@ class RewardShaping(gym.Wrapper):
 
     def __init__(self, env: gym.Env, config: dict[str, Any]):
         super().__init__(env)
-        self.config = validate_reward_config(config)
+        self.replace_terms(config)
         self._prev: dict | None = None
-        self._sums = dict.fromkeys(self.config, 0.0)
 
     def replace_terms(self, config: dict[str, Any]) -> None:
         """Use ``config``'s terms instead (a task's default reward overridden by ``env.reward``)."""
@@ -154,12 +186,17 @@ class RewardShaping(gym.Wrapper):
         return obs, {**info, **{f"reward/{k}": 0.0 for k in self.config}}
 
     def step(self, action):
-        obs, _, terminated, truncated, info = self.env.step(action)
-        for key in ("cte", "heading_error", "speed"):
-            if key not in info:
-                raise DrivelabError(f"reward shaping needs lane geometry in info ('{key}'); this env does not report it")
-        reward, parts, end = score(self.config, info, self._prev)
-        self._prev = info
+        obs, env_reward, terminated, truncated, info = self.env.step(action)
+        for name in self.config:
+            missing = [key for key in NEEDS.get(name, ()) if key not in info]
+            if missing:
+                raise DrivelabError(f"reward term '{name}' needs info['{missing[0]}'], which this env does not report "
+                                    f"(terms for any env: native, or your own module:function)")
+        # what the terms see: the env's own reward (unless a driving env reported it), and for a
+        # user's term the observation and the action
+        seen = {"native_reward": float(env_reward), **info, "observation": obs, "action": action}
+        reward, parts, end = score(self.config, seen, self._prev)
+        self._prev = seen
         for name, value in parts.items():
             self._sums[name] += value
         return obs, reward, terminated or end, truncated, {**info, **{f"reward/{k}": v for k, v in self._sums.items()}}

@@ -11,6 +11,15 @@ the number of training scenarios).
 
 A config file may carry its sweep in a ``sweep:`` section (``grid``: {key: [values]}, ``seeds``),
 which the command line extends; see ``configs/metadrive_generalization.yaml``.
+
+Or a search instead of a grid (``drivelab sweep CONFIG --trials 16 --space ppo.lr=loguniform:1e-5,1e-3
+--metric eval/return_mean --asha``, or a ``search:`` block in the section, see
+``configs/ppo_cartpole_search.yaml``): Optuna's TPE sampler (Ray Tune's ``OptunaSearch``) picks
+each trial's values from the space after the results of the earlier ones, and ASHA (Li et al.
+2020, ``ASHAScheduler``) stops the trials whose metric at an evaluation step trails the others
+(every ``reduction_factor``-th one goes on past each rung). A trial is a normal run in
+``SWEEP/<trial id>-<values>-s<seed>``; one that ASHA stopped keeps its checkpoints. The table ranks
+the trials by the metric.
 """
 
 from __future__ import annotations
@@ -19,6 +28,7 @@ import copy
 import itertools
 import json
 import math
+import os
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -32,7 +42,7 @@ from drivelab.config import merge_overrides, parse_value, read_yaml, resolve_con
 from drivelab.errors import DrivelabError
 from drivelab.tools.policies import build_config
 from drivelab.tools.tables import format_table
-from drivelab.training.plots import last_metrics, mean_and_ci95
+from drivelab.training.plots import last_metrics, mean_and_ci95, read_metrics
 
 # The final metrics summarised per setting, the first of each pair that the runs logged.
 SUMMARY_METRICS = ("eval/success_rate", "eval/route_completion", "eval/return_mean", "episode/success_rate",
@@ -86,16 +96,234 @@ def load_sweep(config: str | Path, grid: Sequence[str] = (), seeds: str | None =
     """(base config data, grid, seeds) of a sweep: the config file (or shipped config) and its
     optional ``sweep:`` section, extended by ``grid`` items (``KEY=V1,V2``, as ``--grid``), with
     ``seeds`` (as ``--seeds``; default the section's, else 0) and ``steps`` per run if given."""
-    path = resolve_config_file(config)
-    base = read_yaml(path)
-    section = base.pop("sweep", None) or {}
-    if not isinstance(section, dict) or set(section) - {"grid", "seeds"}:
-        raise DrivelabError(f"config file {path}: the sweep section holds only grid and seeds")
+    base, section = _read_sweep(config)
     values = {key: v if isinstance(v, list) else [v] for key, v in (section.get("grid") or {}).items()}
     values.update(parse_grid(list(grid)))
     if steps is not None:
         base["steps"] = steps
     return base, values, parse_seeds(seeds if seeds is not None else section.get("seeds", [0]))
+
+
+# ---- search: Optuna's sampler and ASHA's early stopping on Ray Tune -------------------------
+
+DISTRIBUTIONS = ("loguniform", "uniform", "int", "choice")
+
+
+@dataclass
+class Search:
+    """A ``sweep.search`` block: ``space`` maps a dotted config key to ``[distribution, ...]``
+    (``[loguniform, low, high]``, ``[uniform, low, high]``, ``[int, low, high]`` (both included),
+    ``[choice, v1, v2, ...]``); ``trials`` runs are sampled, each ranked by ``metric`` (a logged
+    name, e.g. ``eval/return_mean``) towards ``mode`` (max or min)."""
+    space: dict[str, list[Any]]
+    trials: int = 8
+    metric: str = "eval/return_mean"
+    mode: str = "max"
+    asha: bool = False                 # stop the trials that trail at an evaluation (ASHA)
+    grace_period: int | None = None    # env steps every trial trains before ASHA may stop it (default: eval.every)
+    reduction_factor: int = 2          # ASHA keeps 1 trial in this many at each rung
+
+    def validate(self) -> None:
+        where = "sweep.search"
+        if not self.space:
+            raise DrivelabError(f"{where}.space names no config field to search (e.g. ppo.lr: [loguniform, 1e-5, 1e-3])")
+        for key, spec in self.space.items():
+            if not isinstance(spec, list) or not spec or spec[0] not in DISTRIBUTIONS:
+                raise DrivelabError(f"{where}.space.{key} must be [distribution, ...] with a distribution in "
+                                    f"{', '.join(DISTRIBUTIONS)}, got {spec!r}")
+            if spec[0] != "choice" and (len(spec) != 3 or not all(isinstance(x, (int, float)) for x in spec[1:])
+                                        or not spec[1] < spec[2] or (spec[0] == "loguniform" and spec[1] <= 0)):
+                raise DrivelabError(f"{where}.space.{key}: {spec[0]} needs low < high (low > 0 for loguniform), got {spec!r}")
+            if spec[0] == "choice" and len(spec) < 2:
+                raise DrivelabError(f"{where}.space.{key}: choice needs at least one value")
+        if self.trials < 1 or self.mode not in ("max", "min") or self.reduction_factor < 2:
+            raise DrivelabError(f"{where}: trials must be >= 1, mode max or min, reduction_factor >= 2")
+        if self.grace_period is not None and self.grace_period < 1:
+            raise DrivelabError(f"{where}.grace_period must be >= 1 env step")
+
+    def domains(self) -> dict[str, Any]:
+        """Ray Tune's search space (OptunaSearch converts it into Optuna's distributions)."""
+        from ray import tune
+
+        make = {"loguniform": lambda lo, hi: tune.loguniform(lo, hi), "uniform": lambda lo, hi: tune.uniform(lo, hi),
+                "int": lambda lo, hi: tune.randint(int(lo), int(hi) + 1)}
+        return {key: tune.choice(spec[1:]) if spec[0] == "choice" else make[spec[0]](*spec[1:])
+                for key, spec in self.space.items()}
+
+
+def parse_space(items: list[str]) -> dict[str, list[Any]]:
+    """``["ppo.lr=loguniform:1e-5,1e-3", "ppo.num_steps=choice:64,128"]`` -> the ``space`` of a :class:`Search`."""
+    space: dict[str, list[Any]] = {}
+    for item in items:
+        key, sep, spec = item.partition("=")
+        kind, colon, values = spec.partition(":")
+        if not sep or not colon or not key or kind not in DISTRIBUTIONS:
+            raise DrivelabError(f"--space expects KEY=DISTRIBUTION:A,B with a distribution in {', '.join(DISTRIBUTIONS)}, "
+                                f"got {item!r}")
+        space[key.strip()] = [kind, *(parse_value(v) for v in values.split(","))]
+    return space
+
+
+def _search_trial(setting: dict[str, Any], base: dict, out: Path, seed: int, train: Callable[..., Any]) -> None:
+    """One search trial: a drivelab run with the sampled ``setting``, reporting its metrics to
+    Tune at each evaluation (at each log without evaluations), where ASHA may stop it."""
+    from ray import tune
+
+    trial_id = tune.get_context().get_trial_id()
+    rounded = {key: float(f"{value:.3g}") if isinstance(value, float) else value for key, value in setting.items()}
+    data = trial_config(base, Trial(setting, seed), out / f"{trial_id}-{Trial(rounded, seed).name}")
+    cfg = build_config(data, where=f"search trial {trial_id}")
+    report_on = "eval" if cfg.eval.every else "log"
+    latest: dict[str, float] = {}
+
+    def report(event) -> None:
+        if event.kind in ("log", "eval"):
+            prefix = "eval/" if event.kind == "eval" else ""
+            latest.update({prefix + key: float(value) for key, value in event.metrics.items()})
+        if event.kind == report_on:
+            tune.report({**{k: v for k, v in latest.items() if math.isfinite(v)}, "step": event.step,
+                         "run": Path(cfg.run_dir).name})
+
+    train(cfg, progress=False, callback=report)
+
+
+def run_search(base: dict, search: Search, seed: int, out: Path, train: Callable[..., Any],
+               ray_address: str | None = None, cpus_per_trial: float = 1.0, max_concurrent: int | None = None) -> dict:
+    """Sample ``search.trials`` runs with Optuna on Ray Tune (ASHA stopping the laggards when
+    ``search.asha``), then rank them by ``search.metric``; writes sweep.json, sweep.md and
+    curves.png into ``out`` and returns the summary."""
+    from drivelab.envs.ray_backend import connect, import_ray
+
+    search.validate()
+    probe = build_config(merge_overrides(copy.deepcopy(base), {k: _example(v) for k, v in search.space.items()}),
+                         where="sweep base config")  # the base and the space's keys are valid before anything runs
+    out = out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "sweep.yaml").write_text(yaml.safe_dump({"base": base, "search": search.__dict__, "seed": seed}, sort_keys=False))
+    _quiet_tune()
+    import_ray()
+    connect(ray_address)
+    from ray import tune
+    from ray.tune.schedulers import ASHAScheduler
+
+    try:
+        import optuna
+        from ray.tune.search.optuna import OptunaSearch
+    except ImportError:
+        raise DrivelabError("a search needs optuna: pip install 'drivelab[ray]'") from None
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    scheduler = None
+    if search.asha:
+        grace = search.grace_period or probe.eval.every or probe.log_every
+        scheduler = ASHAScheduler(time_attr="step", max_t=probe.steps, grace_period=grace,
+                                  reduction_factor=search.reduction_factor)
+    tuner = tune.Tuner(
+        tune.with_resources(tune.with_parameters(_search_trial, base=base, out=out, seed=seed, train=train),
+                            {"cpu": cpus_per_trial}),
+        param_space=search.domains(),
+        tune_config=tune.TuneConfig(metric=search.metric, mode=search.mode, num_samples=search.trials,
+                                    search_alg=OptunaSearch(sampler=optuna.samplers.TPESampler(seed=seed)),
+                                    scheduler=scheduler, max_concurrent_trials=max_concurrent),
+        run_config=tune.RunConfig(name="tune", storage_path=str(out / ".tune"), verbose=0),
+    )
+    results = tuner.fit()
+    trials = []
+    for result in results:
+        metrics = result.metrics or {}
+        run = out / str(metrics.get("run", ""))
+        if not metrics.get("run") or not (run / "metrics.csv").is_file():
+            error = str(result.error).strip().splitlines()[-1] if result.error else "no result"
+            trials.append({"run": None, "setting": result.config, "error": error})
+            continue
+        final = last_metrics(run)
+        step = max(int(steps[-1]) for steps, _, _ in read_metrics(run).values() if len(steps))
+        trials.append({"run": run.name, "setting": result.config, "step": step, "stopped_early": step < probe.steps,
+                       "metric": final.get(search.metric, metrics.get(search.metric))})
+    ranked = sorted((t for t in trials if t.get("metric") is not None), key=lambda t: t["metric"],
+                    reverse=search.mode == "max")
+    summary = {"search": {**search.__dict__, "steps": probe.steps, "seed": seed},
+               "trials": ranked + [t for t in trials if t.get("metric") is None]}
+    if ranked:
+        summary["best"] = ranked[0]
+    (out / "sweep.json").write_text(json.dumps(summary, indent=1))
+    (out / "sweep.md").write_text(format_search(summary) + "\n")
+    runs = [out / t["run"] for t in ranked]
+    if runs:
+        from drivelab.training.plots import plot_runs
+
+        plot_runs(runs, out / "curves.png")
+    return summary
+
+
+def _quiet_tune() -> None:
+    """Tune's legacy reporter, which ``verbose=0`` silences: the newer one still prints its
+    configuration box and a TensorBoard hint into Ray's temporary session folder."""
+    os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
+
+
+def _example(spec: list[Any]) -> Any:
+    """A value inside a space entry (to validate the config it would make)."""
+    return spec[1] if spec[0] == "choice" else (int(spec[1]) if spec[0] == "int" else spec[1])
+
+
+def format_search(summary: dict) -> str:
+    """A Markdown table of the trials, best first: values, the metric, env steps trained, stopped or not."""
+    search = summary["search"]
+    keys = list(search["space"])
+    rows = []
+    for t in summary["trials"]:
+        values = [f"{t['setting'].get(k):.3g}" if isinstance(t["setting"].get(k), float) else str(t["setting"].get(k))
+                  for k in keys]
+        if t.get("metric") is None:
+            rows.append([t["run"] or "-", *values, "-", "-", t.get("error", "")])
+        else:
+            stopped = f"stopped by ASHA at {t['step']:,}" if t["stopped_early"] else f"{t['step']:,}"
+            rows.append([t["run"], *values, f"{t['metric']:.4g}", stopped, ""])
+    if not any(row[-1] for row in rows):  # no trial failed: no error column
+        rows = [row[:-1] for row in rows]
+    return format_table(["run", *keys, search["metric"], "env steps", "error"][:len(rows[0]) if rows else None], rows,
+                        markdown=True)
+
+
+def _read_sweep(config: str | Path) -> tuple[dict, dict]:
+    """(base config data, its ``sweep:`` section)."""
+    path = resolve_config_file(config)
+    base = read_yaml(path)
+    section = base.pop("sweep", None) or {}
+    if not isinstance(section, dict) or set(section) - {"grid", "seeds", "search"}:
+        raise DrivelabError(f"config file {path}: the sweep section holds only grid, seeds and search")
+    return base, section
+
+
+def load_search(config: str | Path, space: Sequence[str] = (), seeds: str | None = None, steps: int | None = None,
+                **fields: Any) -> tuple[dict, Search, int] | None:
+    """(base config data, search, seed) when the config's sweep section has a ``search`` block or
+    ``space`` items (``KEY=DISTRIBUTION:A,B``, as ``--space``) are given, with the ``fields`` of
+    :class:`Search` given on the command line (None: the block's, else the default); else None."""
+    base, section = _read_sweep(config)
+    block = section.get("search")
+    if block is None and not space:
+        return None
+    if block is not None and not isinstance(block, dict):
+        raise DrivelabError("sweep.search must be a mapping (space, trials, metric, mode, asha, ...)")
+    block = dict(block or {})
+    unknown = set(block) - set(Search.__dataclass_fields__)
+    if unknown:
+        raise DrivelabError(f"sweep.search: unknown field(s) {', '.join(sorted(unknown))}; "
+                            f"known: {', '.join(Search.__dataclass_fields__)}")
+    block["space"] = {**(block.get("space") or {}), **parse_space(list(space))}
+    block.update({key: value for key, value in fields.items() if value is not None})
+    search = Search(**block)
+    search.validate()
+    if section.get("grid"):
+        raise DrivelabError("sweep: give a grid or a search, not both")
+    chosen = parse_seeds(seeds if seeds is not None else section.get("seeds", [0]))
+    if len(chosen) != 1:
+        raise DrivelabError(f"a search trains one seed per trial; got seeds {chosen} (rerun the best values over "
+                            f"seeds with --grid)")
+    if steps is not None:
+        base["steps"] = steps
+    return base, search, chosen[0]
 
 
 def plan(grid: dict[str, list[Any]], seeds: list[int]) -> list[Trial]:
@@ -140,6 +368,7 @@ def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Pat
         build_config(data, where=f"sweep trial {t.name}")
     out.mkdir(parents=True, exist_ok=True)
     (out / "sweep.yaml").write_text(yaml.safe_dump({"base": base, "grid": grid, "seeds": seeds}, sort_keys=False))
+    _quiet_tune()
     import_ray()
     connect(ray_address)
     from ray import tune

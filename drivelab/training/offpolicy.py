@@ -60,6 +60,11 @@ class OffPolicyParams:
         if not 0 < self.tau <= 1 or not 0 <= self.gamma <= 1 or self.utd <= 0:
             raise DrivelabError("config fields 'tau' (0, 1], 'gamma' [0, 1] and 'utd' (> 0) are out of range")
 
+    def iteration_steps(self, num_envs: int) -> int:
+        """Env steps of one iteration (one step of every env; the workers' last chunks are cut
+        to end there): ``steps`` is rounded up to a multiple of it."""
+        return num_envs
+
 
 @dataclass
 class NoisyExplorationParams(OffPolicyParams):
@@ -210,8 +215,10 @@ class ReplayCollector:
         workers: the oldest chunk in flight (none until ``chunks_in_flight`` are queued), and a
         new chunk is queued with the actor's weights of the moment."""
         if self.in_workers:
-            stored = self._store_chunk() if len(self._in_flight) >= self.hp.chunks_in_flight else 0
-            while len(self._in_flight) < self.hp.chunks_in_flight:
+            last_chunks = self._sent_steps >= self.run.cfg.steps  # nothing more to send: store what is in flight
+            full = len(self._in_flight) >= self.hp.chunks_in_flight
+            stored = self._store_chunk() if self._in_flight and (full or last_chunks) else 0
+            while len(self._in_flight) < self.hp.chunks_in_flight and self._sent_steps < self.run.cfg.steps:
                 self._send_chunk(agent)
         else:
             heat_up = self.steps < self.hp.learning_starts
@@ -239,13 +246,16 @@ class ReplayCollector:
     def _send_chunk(self, agent: OffPolicyAgent) -> None:
         """Queue ``chunk_steps`` steps in each worker with the actor's current weights; the
         chunk's steps are the ``chunk_steps * N`` after those already stored or in flight."""
+        # the run's last chunks are cut so that it stores exactly `steps` (a multiple of N)
+        length = min(self.hp.chunk_steps, -(-(self.run.cfg.steps - self._sent_steps) // self.num_envs))
+        if length <= 0:
+            return
         weights = {name: value.detach().cpu().numpy() for name, value in agent.state_dict().items()
                    if not name.startswith("critic.")}
         heat_up = self._sent_steps < self.hp.learning_starts
-        self.envs.call_queue("play", weights, self.hp.chunk_steps, self._sent_steps, self.num_envs, heat_up,
-                             steps=self.hp.chunk_steps)
+        self.envs.call_queue("play", weights, length, self._sent_steps, self.num_envs, heat_up, steps=length)
         self._in_flight.append(self.updates)
-        self._sent_steps += self.hp.chunk_steps * self.num_envs
+        self._sent_steps += length * self.num_envs
         self._fresh[:] = False  # the workers are playing: no episode can be restarted from its seed
 
     def _store_chunk(self) -> int:

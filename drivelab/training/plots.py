@@ -57,18 +57,43 @@ def rolling_mean(values: np.ndarray, window: int) -> np.ndarray:
 
 
 def group_runs(run_dirs: list[Path]) -> dict[str, list[Path]]:
-    """Runs with the same config but for seed and run directory, keyed by a short label."""
+    """Runs with the same config but for seed and run directory, keyed by a short label: "algo on
+    env", and where several groups share that, every one of them with the fields that set it apart
+    (``ppo on CartPole-v1 (lr=0.001)``)."""
+    configs: dict[str, dict] = {}
     groups: dict[str, list[Path]] = defaultdict(list)
-    labels: dict[str, str] = {}
     for run in run_dirs:
         config_file = run / "config.yaml"
         config = yaml.safe_load(config_file.read_text()) if config_file.is_file() else {}
-        config = config if isinstance(config, dict) else {}
-        key = yaml.safe_dump({k: v for k, v in config.items() if k not in ("seed", "run_dir")}, sort_keys=True)
-        label = f"{config.get('algo', '?')} on {(config.get('env') or {}).get('id', '?')}"
-        labels.setdefault(key, label if label not in labels.values() else f"{label} ({run.name})")
-        groups[labels[key]].append(run)
-    return dict(groups)
+        config = {k: v for k, v in (config if isinstance(config, dict) else {}).items() if k not in ("seed", "run_dir")}
+        key = yaml.safe_dump(config, sort_keys=True)
+        configs[key] = config
+        groups[key].append(run)
+    base = {key: f"{c.get('algo', '?')} on {(c.get('env') or {}).get('id', '?')}" for key, c in configs.items()}
+    flat = {key: _flat(c) for key, c in configs.items()}
+    labels = {}
+    for key, label in base.items():
+        twins = [other for other in base if base[other] == label]
+        if len(twins) > 1:
+            differing = [name for name in flat[key] if len({repr(flat[t].get(name)) for t in twins}) > 1]
+            shown = ", ".join(f"{name.split('.')[-1]}={_short(flat[key].get(name))}" for name in differing[:3])
+            label = f"{label} ({shown or groups[key][0].name})"
+        labels[key] = label
+    return {labels[key]: members for key, members in groups.items()}
+
+
+def _short(value: object) -> object:
+    return float(f"{value:.3g}") if isinstance(value, float) else value
+
+
+def _flat(data: dict, prefix: str = "") -> dict[str, object]:
+    out: dict[str, object] = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
 
 
 def mean_and_ci95(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,7 +155,8 @@ def plot_runs(run_dirs: list[str | Path], out: str | Path, metrics: list[str] | 
             if not curves:
                 continue
             x, mean, low, high = mean_and_band(curves) if len(curves) > 1 else (*curves[0], None, None)
-            line, = ax.plot(x, mean, label=label + (f" ({len(curves)} seeds)" if len(curves) > 1 else ""))
+            line, = ax.plot(x, mean, marker="o" if len(x) < 3 else None,  # a point or two: visible as markers
+                            label=label + (f" ({len(curves)} seeds)" if len(curves) > 1 else ""))
             if low is not None:
                 ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2)
         ax.set_title(title)

@@ -58,6 +58,11 @@ class ActorCriticParams(PolicyNetParams):
         if not 0 <= self.gae_lambda <= 1 or not 0 <= self.gamma <= 1:
             raise DrivelabError("config fields 'gamma' and 'gae_lambda' must be in [0, 1]")
 
+    def iteration_steps(self, num_envs: int) -> int:
+        """Env steps of one iteration (a rollout of ``num_steps`` in each env): ``steps`` is
+        rounded up to a multiple of it, so a run ends where its config says."""
+        return self.num_steps * num_envs
+
 
 class RolloutBatch(NamedTuple):
     """A rollout flattened to B = T * N samples for the update."""

@@ -42,6 +42,7 @@ Metrics, the same for every algorithm (``metrics.csv``, TensorBoard, MLflow):
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -50,7 +51,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from drivelab.config import TrainConfig
+from drivelab.config import TrainConfig, resolve_device
 from drivelab.errors import kill_point
 from drivelab.training.checkpoint import Checkpoint, restore
 from drivelab.training.episodes import EpisodeTracker
@@ -79,6 +80,7 @@ class Run:
 
     def __init__(self, cfg: TrainConfig, resume_from: Checkpoint | None = None, progress: bool = True,
                  callback: Callback | None = None):
+        resolve_device(cfg)  # before anything is written: a device this machine lacks is one line
         self.cfg = cfg
         self._callback, self.stopped_by_callback = callback, False
         self.dir = Path(cfg.run_dir)
@@ -103,6 +105,7 @@ class Run:
         self._extra_state: ExtraState | None = None
         self._next_log = self._after(self.step, cfg.log_every)
         self._next_eval = self._after(self.step, cfg.eval.every) if cfg.eval.every else math.inf
+        self._evaluated_at: int | None = None
 
     @staticmethod
     def _after(step: int, every: int) -> int:
@@ -157,7 +160,10 @@ class Run:
             self._next_log = self._after(self.step, self.cfg.log_every)
             self.log(check_finite(self._metrics.flush(), self.step, self._checkpoints.last_step))
         self._evaluation.poll()
-        if self.step >= self._next_eval:
+        # eval.final: the policy the run ends with is weighed for checkpoints/best as well
+        ends_unevaluated = (self.cfg.eval.final and self.cfg.eval.every and self.done and not self.stopped_by_callback
+                            and self._evaluated_at != self.step)
+        if self.step >= self._next_eval or ends_unevaluated:
             self._next_eval = self._after(self.step, self.cfg.eval.every)
             self.evaluate()
         if self._checkpoints.due(self.step, self.done):
@@ -171,6 +177,11 @@ class Run:
             return True
         limit = self.cfg.max_minutes
         return limit is not None and time.perf_counter() - self._metrics.start_time >= 60 * limit
+
+    @property
+    def steps_left(self) -> int:
+        """Env steps still to play before ``steps`` (episodic algorithms cut their last batch to it)."""
+        return max(0, self.cfg.steps - self.step)
 
     def log(self, metrics: Mapping[str, float]) -> None:
         """Log ``metrics`` with the episode means and the perf/* numbers at the current step."""
@@ -186,6 +197,7 @@ class Run:
         """Deterministic episodes of the registered policy on the evaluation env (``cfg.eval``),
         logged as ``eval/*``; a new best ``eval.best_metric`` is saved as ``checkpoints/best``.
         With ``eval.backend: ray`` this only starts the evaluation and returns {}."""
+        self._evaluated_at = self.step
         return self._evaluation.evaluate(self.step, self._policy)
 
     def _save(self, extra_state: ExtraState | None = None, name: str | None = None) -> Path:
@@ -206,4 +218,7 @@ class Run:
         (so the last one is logged) unless the run was ``interrupted``."""
         self._evaluation.close(interrupted)
         self._metrics.close()
+        if self.step > self.cfg.steps:  # REINFORCE and GRPO: the episodes in flight end past `steps`
+            print(f"drivelab: {self.step:,} env steps trained, {self.step - self.cfg.steps:,} past steps "
+                  f"({self.cfg.steps:,}): {self.cfg.algo} updates on whole episodes", file=sys.stderr)
         self._lock.close()  # releases the lock

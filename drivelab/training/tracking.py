@@ -1,4 +1,4 @@
-"""Metrics tracking: TensorBoard and CSV always, MLflow when asked.
+"""Metrics tracking: TensorBoard and CSV always, MLflow and Weights & Biases when asked.
 
 ``metrics.csv`` is tidy (one row per value: ``step,time,name,value``), so a run's metrics load
 with ``pandas.read_csv(...).pivot_table(index="step", columns="name", values="value")``.
@@ -13,7 +13,9 @@ import json
 import math
 import os
 import shutil
+import sys
 import time
+import uuid
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -100,9 +102,11 @@ class Tracker:
             self._csv.writerow(["step", "time", "name", "value"])
         # purge what was logged after the checkpoint (the checkpoint's own step stays, as in the CSV)
         self.tb = SummaryWriter(str(self.run_dir / "tb"), purge_step=None if resume_step is None else resume_step + 1)
-        self.mlflow = None
+        self.mlflow = self.wandb = None
         if cfg.track.mlflow:
             self._start_mlflow(cfg.track, config_to_dict(cfg))
+        if cfg.track.wandb:
+            self._start_wandb(cfg.track, config_to_dict(cfg))
 
     def _truncate_csv(self, step: int) -> None:
         """Keep the header and the rows up to ``step``; a run killed mid-write may have left an
@@ -144,6 +148,28 @@ class Tracker:
             mlflow.log_artifact(str(self.run_dir / "config.yaml"))
         self.mlflow = mlflow
 
+    def _start_wandb(self, track: TrackConfig, params: dict) -> None:
+        """A W&B run in ``RUN/wandb``, whose id is kept in ``RUN/wandb_run_id`` so that a resumed
+        run continues it (W&B ignores the steps it has already seen: the history between the
+        checkpoint and the kill stays as first logged, unlike the CSV and TensorBoard)."""
+        try:
+            import wandb
+        except ImportError:
+            raise DrivelabError("track.wandb is on but wandb is not installed: pip install 'drivelab[wandb]'") from None
+        mode = track.wandb_mode or os.environ.get("WANDB_MODE")
+        if mode is None and not wandb.login(prompt=False, verify=False):
+            mode = "offline"  # no key: never stop a run to ask for one
+            print(f"drivelab: W&B has no API key here (wandb login), so it logs offline to {self.run_dir / 'wandb'}; "
+                  f"upload later with: wandb sync {self.run_dir / 'wandb'}/offline-run-*", file=sys.stderr)
+        id_file = self.run_dir / "wandb_run_id"
+        run_id = id_file.read_text().strip() if id_file.exists() else uuid.uuid4().hex[:8]
+        id_file.write_text(run_id)
+        tags = [params["algo"], str(params["env"]["id"])]
+        self.wandb = wandb.init(project=track.wandb_project, entity=track.wandb_entity, name=self.run_dir.name,
+                                id=run_id, resume="allow", dir=str(self.run_dir), mode=mode, config=params, tags=tags,
+                                settings=wandb.Settings(silent=True, console="off"))
+        self.wandb.config.update({"drivelab_version": __version__, "git_commit": git_commit()}, allow_val_change=True)
+
     def log(self, step: int, metrics: Mapping[str, float]) -> None:
         now = time.time()
         clean = {k: float(v) for k, v in metrics.items() if v is not None and math.isfinite(float(v))}
@@ -153,6 +179,8 @@ class Tracker:
         self._csv_file.flush()
         if self.mlflow is not None:
             self.mlflow.log_metrics(clean, step=step)
+        if self.wandb is not None:
+            self.wandb.log(clean, step=step)
 
     def log_video(self, step: int, path: Path, strip=None) -> None:
         """A video file of the run: a strip of its frames in TensorBoard, the file in MLflow."""
@@ -161,6 +189,8 @@ class Tracker:
             self.tb.flush()
         if self.mlflow is not None:
             self.mlflow.log_artifact(str(path), "videos")
+        if self.wandb is not None:
+            self.wandb.save(str(path), base_path=str(self.run_dir), policy="now")
 
     def close(self) -> None:
         self.tb.close()
@@ -169,6 +199,9 @@ class Tracker:
             self._upload_run_files()
             self.mlflow.end_run()
             self.mlflow = None
+        if self.wandb is not None:
+            self.wandb.finish()
+            self.wandb = None
 
     def _upload_run_files(self) -> None:
         """metrics.csv, the curves, and the latest and best checkpoints (``drivelab eval
