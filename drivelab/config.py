@@ -330,8 +330,9 @@ def _fit_steps(cfg: TrainConfig) -> None:
     size = iteration_steps(cfg.env.num_envs)
     rounded = -(-cfg.steps // size) * size
     if rounded != cfg.steps:
+        # stdout: a note, not a warning (stderr stays for errors and warnings, one line each)
         print(f"drivelab: note: steps {cfg.steps} -> {rounded}, a whole number of {cfg.algo} iterations "
-              f"of {size} env steps", file=sys.stderr)
+              f"of {size} env steps")
         cfg.steps = rounded
 
 
