@@ -100,6 +100,8 @@ def _sweep_parser(sub) -> None:
     p.add_argument("--asha", action="store_true", default=None,
                    help="search: stop the trials that trail at an evaluation (ASHA early stopping)")
     p.add_argument("--steps", type=int, help="env steps per run (overrides the config)")
+    p.add_argument("--env", help="env id for every run (overrides the config), e.g. my_env:MyEnv; its module must be "
+                                 "importable where the runs train (installed, or on PYTHONPATH on every Ray node)")
     p.add_argument("--out", help="sweep directory (default runs/sweep-<config name>)")
     p.add_argument("--ray-address", help="Ray cluster to run on (default: a local Ray instance)")
     p.add_argument("--cpus-per-trial", type=float, default=1.0, help="CPUs Ray reserves for each run")
@@ -216,7 +218,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     out = Path(args.out or Path("runs") / f"sweep-{Path(args.config).stem}")
     searched = load_search(args.config, args.space, args.seeds, args.steps, trials=args.trials, metric=args.metric,
-                           mode=args.mode, asha=args.asha)
+                           mode=args.mode, asha=args.asha, env=args.env)
     if searched is not None:
         if args.grid:
             raise DrivelabError("give --grid or --space (a search), not both")
@@ -229,7 +231,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             print(f"best: {best['run']} ({search.metric} {best['metric']:.4g}); search saved in {out} "
                   "(sweep.json, sweep.md, curves.png, one run directory per trial)")
         return 0 if "best" in summary else 1
-    base, grid, seeds = load_sweep(args.config, args.grid, args.seeds, args.steps)
+    base, grid, seeds = load_sweep(args.config, args.grid, args.seeds, args.steps, env=args.env)
     summary = run_sweep(base, grid, seeds, out, train=api.train, ray_address=args.ray_address,
                         cpus_per_trial=args.cpus_per_trial, max_concurrent=args.max_concurrent)
     print(format_summary(summary))

@@ -328,7 +328,8 @@ def test_a_short_metadrive_run_drives_further_than_random(tmp_path):
                                 "log_std_final": None, "target_kl": None}})
     train(cfg, progress=False)
     trained = evaluate_checkpoint(tmp_path / "md", episodes=10)[0].summary()
-    random = evaluate_baseline("random", EnvConfig(id=cfg.env.id, kwargs=dict(cfg.env.kwargs), num_envs=2), 10).summary()
+    # 5 random episodes: it creeps to the time limit (~860 steps each), always near route 0.04
+    random = evaluate_baseline("random", EnvConfig(id=cfg.env.id, kwargs=dict(cfg.env.kwargs), num_envs=2), 5).summary()
     # Measured (30k steps, ~60 s of training): route 0.22 with seed 0, 0.25 with seed 1 (out of
     # road 1.0: it drives, but not yet through curves); random route 0.04 (it creeps to the time
     # limit). With the idle penalty, seed 0: 0.18 at 30k, 0.04 at 40k. Since `steps` is rounded to

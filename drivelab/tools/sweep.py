@@ -91,16 +91,18 @@ def parse_seeds(text: str | list[int]) -> list[int]:
     return seeds
 
 
-def load_sweep(config: str | Path, grid: Sequence[str] = (), seeds: str | None = None, steps: int | None = None
-               ) -> tuple[dict, dict[str, list[Any]], list[int]]:
+def load_sweep(config: str | Path, grid: Sequence[str] = (), seeds: str | None = None, steps: int | None = None,
+               env: str | None = None) -> tuple[dict, dict[str, list[Any]], list[int]]:
     """(base config data, grid, seeds) of a sweep: the config file (or shipped config) and its
     optional ``sweep:`` section, extended by ``grid`` items (``KEY=V1,V2``, as ``--grid``), with
-    ``seeds`` (as ``--seeds``; default the section's, else 0) and ``steps`` per run if given."""
+    ``seeds`` (as ``--seeds``; default the section's, else 0), and ``steps`` and the ``env`` id if given."""
     base, section = _read_sweep(config)
     values = {key: v if isinstance(v, list) else [v] for key, v in (section.get("grid") or {}).items()}
     values.update(parse_grid(list(grid)))
     if steps is not None:
         base["steps"] = steps
+    if env is not None:
+        merge_overrides(base, {"env.id": env})
     return base, values, parse_seeds(seeds if seeds is not None else section.get("seeds", [0]))
 
 
@@ -296,7 +298,7 @@ def _read_sweep(config: str | Path) -> tuple[dict, dict]:
 
 
 def load_search(config: str | Path, space: Sequence[str] = (), seeds: str | None = None, steps: int | None = None,
-                **fields: Any) -> tuple[dict, Search, int] | None:
+                env: str | None = None, **fields: Any) -> tuple[dict, Search, int] | None:
     """(base config data, search, seed) when the config's sweep section has a ``search`` block or
     ``space`` items (``KEY=DISTRIBUTION:A,B``, as ``--space``) are given, with the ``fields`` of
     :class:`Search` given on the command line (None: the block's, else the default); else None."""
@@ -323,6 +325,8 @@ def load_search(config: str | Path, space: Sequence[str] = (), seeds: str | None
                             f"seeds with --grid)")
     if steps is not None:
         base["steps"] = steps
+    if env is not None:
+        merge_overrides(base, {"env.id": env})
     return base, search, chosen[0]
 
 
