@@ -315,15 +315,15 @@ def parse_config(data: dict, algo_params: Mapping[str, type], where: str = "conf
     cfg.algo_params = _from_dict(algo_params[algo], params, f"{where} section '{algo}'")
     _validate(cfg)
     _fit_heat_up(cfg)
-    _fit_steps(cfg)
     return cfg
 
 
-def _fit_steps(cfg: TrainConfig) -> None:
+def fit_steps(cfg: TrainConfig) -> None:
     """Round ``steps`` up to the algorithm's iteration (PPO and A2C: a rollout of ``num_steps``
     in each env; DDPG, TD3 and SAC: one step of each env), with one line, so that the run ends
     at the number its config, progress bar and report state. REINFORCE and GRPO update on whole
-    episodes: their last batch is cut to the steps left, and the run ends with its episodes."""
+    episodes: their last batch is cut to the steps left, and the run ends with its episodes.
+    Only training calls it (a saved config evaluates as it was written)."""
     iteration_steps = getattr(cfg.algo_params, "iteration_steps", None)
     if iteration_steps is None or cfg.steps == 0:
         return

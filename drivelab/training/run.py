@@ -51,7 +51,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from drivelab.config import TrainConfig, resolve_device
+from drivelab.config import TrainConfig, fit_steps, resolve_device
 from drivelab.errors import kill_point
 from drivelab.training.checkpoint import Checkpoint, restore
 from drivelab.training.episodes import EpisodeTracker
@@ -81,6 +81,7 @@ class Run:
     def __init__(self, cfg: TrainConfig, resume_from: Checkpoint | None = None, progress: bool = True,
                  callback: Callback | None = None):
         resolve_device(cfg)  # before anything is written: a device this machine lacks is one line
+        fit_steps(cfg)       # whole iterations: config.yaml, the bar and the report say where the run ends
         self.cfg = cfg
         self._callback, self.stopped_by_callback = callback, False
         self.dir = Path(cfg.run_dir)
