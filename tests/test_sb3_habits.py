@@ -155,3 +155,15 @@ def test_the_custom_env_example_trains_and_evaluates(tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     assert "steps on the lane on average" in done.stdout
     assert "custom_env:LaneKeepingToy" in (tmp_path / "toy" / "config.yaml").read_text()
+
+
+def test_a_short_sac_run_fits_its_heat_up_and_learns_with_one_line_saying_so(tmp_path, capsys):
+    from drivelab.training.plots import read_metrics
+
+    # SAC's learning_starts (5000) would outlast a 300-step run: it becomes a tenth of the run
+    result = drivelab.train("sac", "Pendulum-v1", steps=300, seed=0, run_dir=tmp_path / "run", progress=False,
+                            log_every=100, sac={"batch_size": 32, "hidden": [32]})
+    err = capsys.readouterr().err
+    assert "sac.learning_starts (5000) is not below steps (300)" in err and err.count("\n") == 1
+    assert "loss/critic" in read_metrics(result.run_dir) and "learning_starts: 30" in \
+        (result.run_dir / "config.yaml").read_text()
