@@ -59,8 +59,10 @@ def main() -> int:
                 "drivelab_commit": commit, "metadrive_version": version("metadrive-simulator"),
                 "selection": f"checkpoints/best: highest {cfg.eval.best_metric} on {cfg.eval.env_id} scenarios "
                              f"{cfg.eval.seed}-{cfg.eval.seed + cfg.eval.episodes - 1}, every {cfg.eval.every:,} steps",
+                # the config's own time budget when it has one (training.json's minutes include the
+                # evaluation of the final policy after it)
                 "reproduce": f"drivelab train --config {args.config} --seed {cfg.seed} --max_minutes "
-                             f"{round(training['minutes'])} --run-dir runs/{args.name} && "
+                             f"{cfg.max_minutes or round(training['minutes']):g} --run-dir runs/{args.name} && "
                              f"drivelab eval runs/{args.name}/checkpoints/best --env MetaDrive-validation-v0 "
                              f"--episodes 200 --num-envs 2 --json",
             },

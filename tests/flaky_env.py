@@ -55,8 +55,8 @@ class FlakyEnv(gym.Wrapper):
 
 
 class TallyEnv(gym.Env):
-    """obs = (episode id, t, 0); reward = 10 t + a for action a at step t; an episode of 3-11
-    steps ends terminated (even ids) or truncated (odd ids). Raises once at the worker's
+    """obs = (episode id, t, episode length); reward = 10 t + a for action a at step t; an
+    episode of 3-11 steps ends terminated (even ids) or truncated (odd ids). Raises once at the worker's
     ``at_step``-th step when ``marker`` names a file that does not exist yet."""
 
     observation_space = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
@@ -67,7 +67,7 @@ class TallyEnv(gym.Env):
         self._steps, self.episode, self.t, self.length = 0, 0, 0, 0
 
     def _obs(self) -> np.ndarray:
-        return np.array([self.episode, self.t, 0.0], np.float32)
+        return np.array([self.episode, self.t, self.length], np.float32)
 
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)

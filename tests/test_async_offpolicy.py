@@ -32,30 +32,33 @@ def _replay(run_dir) -> dict[str, np.ndarray]:
     return {name.removeprefix("replay/"): value.numpy() for name, value in tensors.items() if name.startswith("replay/")}
 
 
-def _check_streams(replay: dict[str, np.ndarray], num_envs: int) -> int:
-    """Check each env's stream of transitions (rows i, i + N, ...); returns the number of places
-    where a stream restarts without its episode having ended (a worker restart)."""
+def _check_streams(replay: dict[str, np.ndarray], num_envs: int) -> list[int]:
+    """Check each env's stream of transitions (rows i, i + N, ...); returns the rows where a
+    stream was cut (a worker restart, a resume): the episode had not ended, the buffer marked the
+    row truncated (so that n-step returns stop there) and the stream goes on with a new episode."""
     obs, next_obs, actions, rewards = replay["obs"], replay["next_obs"], replay["actions"][:, 0], replay["rewards"]
     done = replay["terminated"] | replay["truncated"]
     # (s, a, r): the reward is 10 t + a for the action stored with s
     np.testing.assert_allclose(rewards, 10 * obs[:, 1] + actions, rtol=1e-6, atol=1e-5)
-    # s': the same episode, one step on; terminated exactly where an even episode ended
+    # s': the same episode, one step on; terminated exactly where an even episode ended, truncated
+    # where an odd one did, or where the episode was cut
     np.testing.assert_array_equal(next_obs[:, 0], obs[:, 0])
     np.testing.assert_array_equal(next_obs[:, 1], obs[:, 1] + 1)
-    np.testing.assert_array_equal(replay["terminated"], done & (obs[:, 0] % 2 == 0))
+    ended = next_obs[:, 1] == obs[:, 2]
+    cut = replay["truncated"] & ~ended
+    np.testing.assert_array_equal(replay["terminated"], ended & (obs[:, 0] % 2 == 0))
+    np.testing.assert_array_equal(replay["truncated"], ended & (obs[:, 0] % 2 == 1) | cut)
     # every (episode, t) stored once
     assert len({(e, t) for e, t in obs[:, :2].tolist()}) == len(obs)
-    cuts = 0
     for env in range(num_envs):
         stream_obs, stream_next, stream_done = obs[env::num_envs], next_obs[env::num_envs], done[env::num_envs]
         assert stream_obs[0, 1] == 0  # the first transition starts an episode
         for k in range(len(stream_obs) - 1):
             if stream_done[k]:
-                assert stream_obs[k + 1, 1] == 0, (env, k)          # a new episode follows an ended one
-            elif not np.array_equal(stream_next[k], stream_obs[k + 1]):
-                assert stream_obs[k + 1, 1] == 0, (env, k)          # a cut: only to a fresh episode
-                cuts += 1
-    return cuts
+                assert stream_obs[k + 1, 1] == 0, (env, k)          # a new episode follows an ended or cut one
+            else:
+                np.testing.assert_array_equal(stream_next[k], stream_obs[k + 1])  # the episode goes on
+    return np.flatnonzero(cut).tolist()
 
 
 def test_workers_deliver_every_transition_once_in_order(tmp_path):
@@ -64,7 +67,7 @@ def test_workers_deliver_every_transition_once_in_order(tmp_path):
     replay = _replay(tmp_path / "run")
     assert len(replay["rewards"]) == 480
     assert replay["terminated"].any() and replay["truncated"].any()
-    assert _check_streams(replay, num_envs=2) == 0
+    assert _check_streams(replay, num_envs=2) == []
     with open(tmp_path / "run" / "metrics.csv") as f:
         rows = [r for r in csv.DictReader(f)]
     lags = [float(r["value"]) for r in rows if r["name"] == "charts/policy_lag"]
@@ -79,8 +82,9 @@ def test_a_worker_restart_drops_its_chunk_and_nothing_else(tmp_path):
     train(cfg, progress=False)
     assert (tmp_path / "crashed").exists()
     replay = _replay(tmp_path / "run")
-    # the chunk in flight when a worker raised is dropped: both envs' streams cut once
-    assert _check_streams(replay, num_envs=2) == 2
+    # the chunk in flight when a worker raised is dropped: both envs' streams cut once, side by side
+    cuts = _check_streams(replay, num_envs=2)
+    assert len(cuts) == 2 and cuts[1] == cuts[0] + 1 and cuts[0] % 2 == 0, cuts
     assert len(replay["rewards"]) == 480
 
 
@@ -109,8 +113,9 @@ def test_a_killed_asynchronous_run_resumes(tmp_path):
     assert again.returncode == 0, again.stderr
     replay = _replay(run_dir)
     assert load_checkpoint(run_dir).step == 480 and len(replay["rewards"]) == 480
-    # the episodes in flight at the step-160 checkpoint restart on resume: those streams are cut once
-    in_flight = ~(replay["terminated"] | replay["truncated"])[158:160]
-    assert _check_streams(replay, num_envs=2) == in_flight.sum()
+    # the episodes in flight at the step-160 checkpoint restart on resume: those streams are cut
+    # there once (an env that had just ended its episode at step 160 has nothing to cut)
+    in_flight = [row for row in (158, 159) if replay["next_obs"][row, 1] < replay["obs"][row, 2]]
+    assert _check_streams(replay, num_envs=2) == in_flight
 
 # Learning with the workers acting: tests/test_offpolicy.py::test_sac_and_td3_swing_up_the_pendulum[td3].

@@ -44,8 +44,8 @@ def test_on_policy_updates_keep_to_the_networks_device(algo):
 def test_off_policy_updates_and_actions_keep_to_the_networks_device(algo):
     agent = OffPolicyAgent(OBS, ACT, [8], "relu", stochastic=algo == "sac", critics=1 if algo == "ddpg" else 2).to(META)
     target = make_target(agent)
-    obs, actions, rewards, next_obs, terminated = _on_meta((B, 6), (B, 2), (B,), (B, 6), (B,))
-    batch = ReplayBatch(obs, actions, rewards, next_obs, terminated)
+    obs, actions, rewards, next_obs, terminated, discount = _on_meta((B, 6), (B, 2), (B,), (B, 6), (B,), (B,))
+    batch = ReplayBatch(obs, actions, rewards, next_obs, terminated, discount)
     if algo == "sac":
         hp = sac.Params()
         log_alpha = nn.Parameter(torch.zeros((), device=META))

@@ -120,16 +120,18 @@ def test_sac_learns_from_images_with_a_cnn(tmp_path):
 # dip now and then (a few of the 10 start states are not swung up): with [64, 64] at lr 1e-3 both
 # learn by ~8k steps but fell back to -318..-846 at points between 7k and 12k (seeds 0 and 1).
 # The configs' [128, 128] at 5e-4 stayed at -109..-122 from 10k steps on for seeds 0 and 1.
-# TD3 trains with its env workers acting (act_in_workers, 2 subprocess envs, chunks of 16 steps):
-# the asynchronous collector must still learn; SAC trains synchronously.
+# SAC (synchronous) at 8k steps, seed 0: -123 at 6k, -110 at 8k on the in-training evaluation,
+# -132 on this test's. TD3 trains with its env workers acting (act_in_workers, 2 subprocess envs,
+# chunks of 16 steps): the asynchronous collector must still learn; at 8k steps it was -154, with
+# -214 at 6k, too close to the threshold for a test, so it keeps 12k.
 @pytest.mark.slow
-@pytest.mark.parametrize("algo", ["sac", "td3"])
-def test_sac_and_td3_swing_up_the_pendulum(algo, tmp_path):
+@pytest.mark.parametrize("algo, steps", [("sac", 8000), ("td3", 12000)])
+def test_sac_and_td3_swing_up_the_pendulum(algo, steps, tmp_path):
     shipped = read_yaml(CONFIGS / f"{algo}_pendulum.yaml")
     if algo == "td3":
         shipped = {**shipped, "env": {**shipped["env"], "num_envs": 2, "backend": "async"},
                    "td3": {**shipped["td3"], "act_in_workers": True, "chunk_steps": 16}}
-    cfg = build_config({**shipped, "steps": 12000, "seed": 0, "run_dir": str(tmp_path / algo),
+    cfg = build_config({**shipped, "steps": steps, "seed": 0, "run_dir": str(tmp_path / algo),
                         "eval": {"every": 0}})
     train(cfg, progress=False)
     result, _, _ = evaluate_checkpoint(tmp_path / algo, episodes=10)

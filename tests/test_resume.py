@@ -86,6 +86,8 @@ def test_every_phase_is_tested():
 @pytest.mark.parametrize("algo", sorted(RUNS))
 def test_a_run_killed_at_each_phase_finishes_with_the_same_weights(algo, uninterrupted, tmp_path, capsys):
     cases = [(phase, n, start) for phase, (n, start) in PHASES.items()]
+    if algo == "sac":  # the phases are the Run's, shared with TD3: SAC checks its own state (alpha, its optimiser)
+        cases = [(phase, n, start) for phase, n, start in cases if phase == "mid-checkpoint"]
     if algo != "ppo":  # Pendulum's episodes end at the step-400 checkpoint: continuing from it is exact too
         cases.append((*LATE_CHECKPOINT, 400))
     for phase, n, start in cases:

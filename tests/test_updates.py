@@ -164,7 +164,7 @@ def _replay_batch():
     t = lambda x: torch.as_tensor(x, dtype=torch.float32)  # noqa: E731
     return ReplayBatch(obs=t(rng.uniform(-1, 1, (B, 3))), actions=t(rng.uniform(-1, 1, (B, 2))),
                        rewards=t([1.0, 0.0, -1.0, 0.5, 2.0, 0.0]), next_obs=t(rng.uniform(-1, 1, (B, 3))),
-                       terminated=t([0, 0, 1, 0, 0, 1]))
+                       terminated=t([0, 0, 1, 0, 0, 1]), discount=t([0.9] * B))  # gamma 0.9, as the tests' Params
 
 
 def _agent_and_target(stochastic, critics):

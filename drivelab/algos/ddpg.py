@@ -40,10 +40,12 @@ def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -
                           critic_layer_norm=hp.critic_layer_norm)
 
 
-def ddpg_target(rewards: torch.Tensor, terminated: torch.Tensor, next_q: torch.Tensor, gamma: float) -> torch.Tensor:
-    """y = r + gamma * (1 - terminated) * Q'(s', mu'(s')); next_q (1, B), the rest (B,).
-    Truncated steps bootstrap: a time limit is not a terminal state."""
-    return rewards + gamma * (1.0 - terminated) * next_q[0]
+def ddpg_target(rewards: torch.Tensor, terminated: torch.Tensor, next_q: torch.Tensor,
+                discount: torch.Tensor | float) -> torch.Tensor:
+    """y = r + discount * (1 - terminated) * Q'(s', mu'(s')); next_q (1, B), the rest (B,);
+    ``discount`` gamma, or gamma^m per row for n-step returns. Truncated steps bootstrap: a time
+    limit is not a terminal state."""
+    return rewards + discount * (1.0 - terminated) * next_q[0]
 
 
 def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch: ReplayBatch,
@@ -51,7 +53,7 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch
     """One critic step and one actor step on B transitions, then Polyak averaging of the targets."""
     with torch.no_grad():
         next_features = target.features(batch.next_obs)
-        y = ddpg_target(batch.rewards, batch.terminated, target.critic(next_features, target.actor(next_features)), hp.gamma)
+        y = ddpg_target(batch.rewards, batch.terminated, target.critic(next_features, target.actor(next_features)), batch.discount)
     features = agent.features(batch.obs)
     q = agent.critic(features, batch.actions)           # (1, B)
     loss_q = (q - y).pow(2).mean()

@@ -63,10 +63,11 @@ def critic_loss(q: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def soft_td_target(rewards: torch.Tensor, terminated: torch.Tensor, next_q: torch.Tensor, next_log_prob: torch.Tensor,
-                   alpha: torch.Tensor, gamma: float) -> torch.Tensor:
-    """y = r + gamma * (1 - terminated) * (min_e Q'_e(s', a') - alpha * log pi(a'|s')).
-    rewards, terminated, next_log_prob (B,); next_q (E, B). Truncated steps do bootstrap."""
-    return rewards + gamma * (1.0 - terminated) * (next_q.min(dim=0).values - alpha * next_log_prob)
+                   alpha: torch.Tensor, discount: torch.Tensor | float) -> torch.Tensor:
+    """y = r + discount * (1 - terminated) * (min_e Q'_e(s', a') - alpha * log pi(a'|s')).
+    rewards, terminated, next_log_prob (B,); next_q (E, B); ``discount`` gamma, or gamma^m per row
+    for n-step returns. Truncated steps do bootstrap."""
+    return rewards + discount * (1.0 - terminated) * (next_q.min(dim=0).values - alpha * next_log_prob)
 
 
 def actor_loss(log_prob: torch.Tensor, q_pi: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
@@ -88,7 +89,7 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, log_alpha: torch.Tenso
     with torch.no_grad():
         next_action, next_log_prob = agent.actor(agent.features(batch.next_obs))
         next_q = target.critic(target.features(batch.next_obs), next_action)
-        y = soft_td_target(batch.rewards, batch.terminated, next_q, next_log_prob, alpha, hp.gamma)
+        y = soft_td_target(batch.rewards, batch.terminated, next_q, next_log_prob, alpha, batch.discount)
     features = agent.features(batch.obs)
     q = agent.critic(features, batch.actions)                   # (2, B)
     loss_q = critic_loss(q, y)

@@ -47,10 +47,12 @@ def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -
                           critic_layer_norm=hp.critic_layer_norm)
 
 
-def td_target(rewards: torch.Tensor, terminated: torch.Tensor, next_q: torch.Tensor, gamma: float) -> torch.Tensor:
-    """y = r + gamma * (1 - terminated) * min_e Q'_e(s', a'); next_q (E, B), the rest (B,).
+def td_target(rewards: torch.Tensor, terminated: torch.Tensor, next_q: torch.Tensor,
+              discount: torch.Tensor | float) -> torch.Tensor:
+    """y = r + discount * (1 - terminated) * min_e Q'_e(s', a'); next_q (E, B), the rest (B,).
+    ``discount`` is gamma, or gamma^m per row for n-step returns (r then sums m rewards).
     With one critic (E = 1) this is DDPG's target."""
-    return rewards + gamma * (1.0 - terminated) * next_q.min(dim=0).values
+    return rewards + discount * (1.0 - terminated) * next_q.min(dim=0).values
 
 
 def smoothed_target_action(target_action: torch.Tensor, policy_noise: float, noise_clip: float) -> torch.Tensor:
@@ -66,7 +68,7 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch
     with torch.no_grad():
         next_features = target.features(batch.next_obs)
         next_action = smoothed_target_action(target.actor(next_features), hp.policy_noise, hp.noise_clip)
-        y = td_target(batch.rewards, batch.terminated, target.critic(next_features, next_action), hp.gamma)
+        y = td_target(batch.rewards, batch.terminated, target.critic(next_features, next_action), batch.discount)
     features = agent.features(batch.obs)
     q = agent.critic(features, batch.actions)                   # (2, B)
     loss_q = (q - y).pow(2).mean(dim=1).sum()

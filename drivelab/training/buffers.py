@@ -4,6 +4,14 @@ Preallocated ring arrays, one row per transition; vector envs insert N rows per 
 is sampled with one fancy-indexing gather per field (no Python loop over items). Images stay
 uint8 (4x smaller than float32; the CNN scales them). ``terminated`` and ``truncated`` are kept
 apart: only termination cuts the TD target's bootstrap.
+
+With ``n_step > 1`` a sampled row carries the n-step return (Sutton & Barto 2018, eq. 7.1; as in
+Rainbow and D4PG): the next n rewards of its env, discounted, summed up to the first episode end,
+and the s' after the last of them. Both collectors store the N envs in lockstep (row t of every
+env, then t + 1), so env i's next transition is always N rows further on: the n-step sum is one
+gather per extra step, computed when the batch is drawn (so it needs no extra storage and a
+checkpoint holds the one-step rows). The sum uses the rewards the behaviour policy got, without an
+off-policy correction: the usual trade of a little bias for faster reward propagation.
 """
 
 from __future__ import annotations
@@ -23,6 +31,7 @@ class ReplayBatch(NamedTuple):
     rewards: torch.Tensor     # (B,)
     next_obs: torch.Tensor    # (B, *obs_shape): the true next observation (the final one at an episode end)
     terminated: torch.Tensor  # (B,) float32: 1 where s' is terminal (no bootstrap)
+    discount: torch.Tensor    # (B,) float32: gamma^m, the bootstrap's discount after the m rewards in ``rewards``
 
 
 def available_memory() -> int:
@@ -44,12 +53,19 @@ class ReplayBuffer:
         capacity: number of transitions kept; the oldest are overwritten.
         obs_space, act_space: the env's spaces (the action space must be a Box).
         device: where sampled batches go.
+        gamma: the discount of the TD target (``discount`` of a batch is gamma^m).
+        n_step: rewards summed per sampled row (1: the one-step transition).
+        num_envs: envs stored in lockstep, N rows per step (with ``n_step > 1`` the capacity is
+            rounded down to a multiple of it, so that a row's successor stays N rows on).
         max_memory_fraction: refuse (with a clear error) a buffer needing more than this share of
             the memory available now, instead of failing hours into a run.
     """
 
     def __init__(self, capacity: int, obs_space: gym.Space, act_space: gym.Space,
-                 device: torch.device | str = "cpu", max_memory_fraction: float = 0.8):
+                 device: torch.device | str = "cpu", gamma: float = 0.99, n_step: int = 1, num_envs: int = 1,
+                 max_memory_fraction: float = 0.8):
+        if n_step > 1:
+            capacity -= capacity % num_envs
         if capacity < 1:
             raise DrivelabError(f"replay buffer_size must be >= 1, got {capacity}")
         act_dim = int(np.prod(act_space.shape))
@@ -61,6 +77,7 @@ class ReplayBuffer:
                 f"{available / 2**30:.1f} GiB is available; lower buffer_size"
             )
         self.capacity, self.device = capacity, torch.device(device)
+        self.gamma, self.n_step, self.num_envs = gamma, n_step, num_envs
         self.obs = np.zeros((capacity, *obs_space.shape), obs_space.dtype)
         self.next_obs = np.zeros((capacity, *obs_space.shape), obs_space.dtype)
         self.actions = np.zeros((capacity, act_dim), np.float32)
@@ -92,12 +109,39 @@ class ReplayBuffer:
         self.pos = int((self.pos + n) % self.capacity)
         self.size = min(self.size + n, self.capacity)
 
+    def cut_episodes(self) -> None:
+        """Mark the newest row of every env truncated: its episode was cut there (a resume, or
+        the env workers restarting), so an n-step sum must not run on into the next episode."""
+        newest = (self.pos - 1 - np.arange(min(self.num_envs, self.size))) % self.capacity
+        self.truncated[newest] = True
+
     def sample(self, batch_size: int, rng: np.random.Generator) -> ReplayBatch:
         """A uniform batch (with replacement) as tensors on the buffer's device."""
         idx = rng.integers(0, self.size, size=batch_size)
+        rewards, last, steps = self.rewards[idx], idx, np.ones(batch_size, np.int64)
+        if self.n_step > 1:
+            rewards, last, steps = self._n_step_returns(idx)
         to = lambda x: torch.as_tensor(x, device=self.device)  # noqa: E731
-        return ReplayBatch(to(self.obs[idx]), to(self.actions[idx]), to(self.rewards[idx]), to(self.next_obs[idx]),
-                           to(self.terminated[idx].astype(np.float32)))
+        return ReplayBatch(to(self.obs[idx]), to(self.actions[idx]), to(rewards), to(self.next_obs[last]),
+                           to(self.terminated[last].astype(np.float32)),
+                           to((self.gamma ** steps).astype(np.float32)))
+
+    def _n_step_returns(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For rows ``idx`` (B,): the discounted sum of up to ``n_step`` rewards of each row's env,
+        stopping after an episode's end or at the newest row stored; the last row summed (whose
+        s' and terminated the target bootstraps from) and how many rewards were summed (m)."""
+        rewards = self.rewards[idx].astype(np.float64)
+        last, steps = idx.copy(), np.ones(len(idx), np.int64)
+        rows_after = (self.pos - 1 - idx) % self.capacity   # rows written after each sampled one
+        going = ~(self.terminated[idx] | self.truncated[idx])
+        for k in range(1, self.n_step):
+            going &= k * self.num_envs <= rows_after
+            row = (idx + k * self.num_envs) % self.capacity
+            rewards += np.where(going, self.gamma ** k * self.rewards[row], 0.0)
+            last = np.where(going, row, last)
+            steps += going
+            going &= ~(self.terminated[row] | self.truncated[row])
+        return rewards.astype(np.float32), last, steps
 
     # Checkpointing: the filled rows as tensors (safetensors) plus the ring position (JSON).
     _FIELDS = ("obs", "next_obs", "actions", "rewards", "terminated", "truncated")

@@ -39,6 +39,7 @@ class OffPolicyParams:
     learning_starts: int = 5_000      # random-action heat-up steps before any update
     utd: float = 1.0                  # update-to-data ratio: gradient steps per env step
     gamma: float = 0.99               # discount factor
+    n_step: int = 1                   # rewards summed in the TD target (n-step returns; buffers.ReplayBuffer)
     tau: float = 0.005                # Polyak coefficient of the target networks
     actor_lr: float = 3e-4            # actor learning rate (Adam)
     critic_lr: float = 3e-4           # critic (and image encoder) learning rate (Adam)
@@ -57,6 +58,8 @@ class OffPolicyParams:
             raise DrivelabError("config fields 'batch_size' and 'buffer_size' must satisfy 1 <= batch_size <= buffer_size")
         if self.chunk_steps < 1 or self.chunks_in_flight < 1:
             raise DrivelabError("config fields 'chunk_steps' and 'chunks_in_flight' must be >= 1")
+        if self.n_step < 1:
+            raise DrivelabError(f"config field 'n_step' must be >= 1, got {self.n_step}")
         if not 0 < self.tau <= 1 or not 0 <= self.gamma <= 1 or self.utd <= 0:
             raise DrivelabError("config fields 'tau' (0, 1], 'gamma' [0, 1] and 'utd' (> 0) are out of range")
 
@@ -138,7 +141,8 @@ class ReplayCollector:
                                     wrapper=wrapper)
         self.num_envs = self.envs.num_envs
         self.obs_space, self.act_space = self.envs.single_observation_space, self.envs.single_action_space
-        self.buffer = ReplayBuffer(hp.buffer_size, self.obs_space, self.act_space, run.device)
+        self.buffer = ReplayBuffer(hp.buffer_size, self.obs_space, self.act_space, run.device, gamma=hp.gamma,
+                                   n_step=hp.n_step, num_envs=self.num_envs)
         self.sample_rng = np.random.default_rng([seed, 1])
         self.hp, self.run, self.step_timeout = hp, run, env_cfg.step_timeout
         self.steps = run.step                 # env steps stored (run.step after this collector's last call)
@@ -177,6 +181,7 @@ class ReplayCollector:
             self._reset(everyone, self.run.reset_seeds(everyone))
             return
         self.buffer.load_state(checkpoint.tensors, trainer["replay"])
+        self.buffer.cut_episodes()  # the episodes in flight start anew below
         self.sample_rng.bit_generator.state = trainer["sample_rng"]
         self.updates, self._updates_owed = int(trainer.get("updates", 0)), float(trainer.get("updates_owed", 0.0))
         if "exploration" in trainer:
@@ -268,6 +273,7 @@ class ReplayCollector:
         if chunks is None:  # the workers restarted: the chunks in flight are gone
             self._in_flight.clear()
             self._sent_steps = self.steps
+            self.buffer.cut_episodes()
             everyone = np.ones(self.num_envs, bool)
             self.run.episodes.restart(everyone)
             self._reset(everyone, self.run.reset_seeds(everyone))
