@@ -118,9 +118,10 @@ class ReplayBuffer:
     def sample(self, batch_size: int, rng: np.random.Generator) -> ReplayBatch:
         """A uniform batch (with replacement) as tensors on the buffer's device."""
         idx = rng.integers(0, self.size, size=batch_size)
-        rewards, last, steps = self.rewards[idx], idx, np.ones(batch_size, np.int64)
         if self.n_step > 1:
             rewards, last, steps = self._n_step_returns(idx)
+        else:  # the one-step transition: its own reward and s'
+            rewards, last, steps = self.rewards[idx], idx, np.ones(batch_size, np.int64)
         to = lambda x: torch.as_tensor(x, device=self.device)  # noqa: E731
         return ReplayBatch(to(self.obs[idx]), to(self.actions[idx]), to(rewards), to(self.next_obs[last]),
                            to(self.terminated[last].astype(np.float32)),
