@@ -3,7 +3,7 @@
 1. Every algorithm trains on the device: ``drivelab train --algo X --device D --steps 3000
    --num-envs 8`` on Pendulum-v1 (vector observations), and PPO and SAC on CarRacing-v3 (images,
    the CNN path). Exit code and wall time per run. With ``--pack``, each run's directory (its
-   last checkpoint only) goes into one tar.gz, so the runs can be evaluated on a CPU-only machine:
+   last checkpoint and step 0 only: ``keep_checkpoints 1``) goes into one tar.gz, so the runs can be evaluated on a CPU-only machine:
    ``drivelab eval RUN --episodes 2``; every run is also evaluated there with CUDA hidden.
 2. Gradient updates/s of TD3 and SAC with the networks and a replay batch on the device, against
    the same on the CPU: hidden [256, 256] and [1024, 1024] x batch 256 and 1024, on MetaDrive's
@@ -19,9 +19,7 @@ Run it where CUDA is (and, as a dry run of the script itself, anywhere with ``--
 from __future__ import annotations
 
 import argparse
-import csv
 import os
-import shutil
 import subprocess
 import sys
 import tarfile
@@ -34,9 +32,9 @@ import torch
 
 from drivelab.algos import sac, td3
 from drivelab.training.buffers import ReplayBatch
-from drivelab.training.checkpoint import list_checkpoints
 from drivelab.training.nets import OffPolicyAgent, make_target
 from drivelab.training.offpolicy import make_optimizers
+from drivelab.training.plots import last_metrics
 from training import report  # benchmarks/training.py
 
 ALGOS = ("reinforce", "a2c", "ppo", "grpo", "ddpg", "td3", "sac")
@@ -47,37 +45,21 @@ IMAGE_FIELDS = {"ppo": ["--ppo.num_steps", "128"],
                 "sac": ["--sac.learning_starts", "500", "--sac.buffer_size", "200", "--sac.batch_size", "64"]}
 
 
-def last_metric(run_dir: Path, name: str) -> float | None:
-    """The last value of ``name`` in a run's metrics.csv (None when it was never logged)."""
-    value = None
-    with open(run_dir / "metrics.csv") as f:
-        for row in csv.DictReader(f):
-            if row["name"] == name:
-                value = float(row["value"])
-    return value
-
-
 def train_cli(run_dir: Path, algo: str, env: str, device: str, steps: int, extra: list[str]) -> dict:
     """One ``drivelab train`` in a subprocess (as a user would type it): exit code, wall time,
     the training's own steps/s and, on failure, the last lines it printed."""
     cmd = [sys.executable, "-m", "drivelab", "train", "--algo", algo, "--env", env, "--device", device,
            "--steps", str(steps), "--num-envs", "8", "--seed", "0", "--no-progress", "--run-dir", str(run_dir),
-           "--eval.every", "0", *extra]
+           "--eval.every", "0", "--keep_checkpoints", "1", *extra]
     started = time.perf_counter()
     done = subprocess.run(cmd, capture_output=True, text=True)
     result = {"algo": algo, "env": env, "device": device, "steps": steps, "run_dir": str(run_dir),
               "exit_code": done.returncode, "wall_s": round(time.perf_counter() - started, 1)}
     if done.returncode == 0:
-        result["steps_per_s"] = last_metric(run_dir, "perf/steps_per_s")
+        result["steps_per_s"] = last_metrics(run_dir).get("perf/steps_per_s")
     else:
         result["error"] = (done.stdout + done.stderr).strip().splitlines()[-3:]
     return result
-
-
-def keep_last_checkpoint(run_dir: Path) -> None:
-    """Drop all but the newest checkpoint, so that the packed runs stay small."""
-    for old in list_checkpoints(run_dir)[:-1]:
-        shutil.rmtree(old)
 
 
 def eval_on_cpu(run_dir: Path) -> int:
@@ -102,7 +84,6 @@ def short_runs(device: str, work: Path, pack: str | None) -> list[dict]:
         with tarfile.open(pack, "w:gz") as tar:
             for run in runs:
                 if run["exit_code"] == 0 and run["env"] == "Pendulum-v1":
-                    keep_last_checkpoint(Path(run["run_dir"]))
                     tar.add(run["run_dir"], arcname=Path(run["run_dir"]).name)
     return runs
 
@@ -161,8 +142,8 @@ def update_speeds(device: str, seconds: float) -> list[dict]:
 
 
 def ppo_carracing_speed(device: str, work: Path, steps: int, cpu_threads: int) -> list[dict]:
-    rows = []
-    for dev, threads in ((device, 1), ("cpu", cpu_threads)) if device != "cpu" else (("cpu", cpu_threads),):
+    rows, settings = [], [("cpu", cpu_threads)] if device == "cpu" else [(device, 1), ("cpu", cpu_threads)]
+    for dev, threads in settings:
         run = train_cli(work / f"ppo-carracing-speed-{dev}", "ppo", "CarRacing-v3", dev, steps,
                         ["--update_threads", str(threads)])
         run["update_threads"] = threads
