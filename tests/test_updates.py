@@ -282,6 +282,31 @@ def test_sac_update_soft_target_actor_and_temperature():
     _assert_params(target, _polyak(target_before, agent, 0.1))
 
 
+@pytest.mark.parametrize("algo", ["ddpg", "td3", "sac"])
+def test_the_actor_step_computes_no_weight_gradients_for_the_critics(algo):
+    # The actor's step goes through the critics for dQ/da only (nets.frozen): each critic weight
+    # gets its gradient once per update, from the critic's own step, and stays trainable after.
+    agent, target = _agent_and_target(stochastic=algo == "sac", critics=1 if algo == "ddpg" else 2)
+    computed = []
+    for p in agent.critic.parameters():
+        p.register_hook(lambda grad: computed.append(grad))
+    batch, opt = _replay_batch(), _sgd(agent)
+    if algo == "ddpg":
+        out = ddpg.update(agent, target, opt, batch, ddpg.Params())
+    elif algo == "td3":
+        out = td3.update(agent, target, opt, batch, td3.Params(), update_actor=True)
+    else:
+        out = sac.update(agent, target, torch.nn.Parameter(torch.tensor(0.0)),
+                         sac.Optimizers(*opt, alpha=torch.optim.SGD([torch.nn.Parameter(torch.tensor(0.0))], lr=0.1)),
+                         batch, sac.Params(), target_entropy=-2.0)
+    assert "loss/actor" in out
+    assert len(computed) == len(list(agent.critic.parameters()))
+    assert all(p.requires_grad for p in agent.critic.parameters())
+    # TD3's actor ascends Q_1 alone: the first member of the twin critics, computed by itself.
+    q = agent.critic(batch.obs, batch.actions)
+    torch.testing.assert_close(agent.critic(batch.obs, batch.actions, members=1), q[:1])
+
+
 def test_log_std_bound_falls_linearly_and_projects_the_parameter():
     """The bound goes from log_std_init at step 0 to log_std_final at the last step; a log std
     below the bound is left alone, one above it is set to it; no schedule: untouched."""

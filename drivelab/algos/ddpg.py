@@ -18,7 +18,7 @@ import torch
 from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.training.losses import deterministic_actor_loss, gradient_step, saturated_share
-from drivelab.training.nets import OffPolicyAgent, make_target, polyak_update
+from drivelab.training.nets import OffPolicyAgent, frozen, make_target, polyak_update
 from drivelab.training.offpolicy import (NoisyExploration, NoisyExplorationParams, Optimizers, ReplayCollector,
                                         make_optimizers)
 from drivelab.training.run import Run
@@ -60,8 +60,9 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch
     gradient_step(opt.critic, loss_q)
     detached = features.detach()
     pre_tanh = agent.actor.pre_tanh(detached)
-    loss_pi = deterministic_actor_loss(agent.critic(detached, torch.tanh(pre_tanh))[0], pre_tanh, hp.pre_tanh_l2)
-    gradient_step(opt.actor, loss_pi)
+    with frozen(agent.critic):   # dQ/da only: no weight gradients for the critic in the actor's step
+        loss_pi = deterministic_actor_loss(agent.critic(detached, torch.tanh(pre_tanh))[0], pre_tanh, hp.pre_tanh_l2)
+        gradient_step(opt.actor, loss_pi)
     polyak_update(target, agent, hp.tau)
     return {"loss/critic": loss_q.detach(), "loss/actor": loss_pi.detach(), "charts/q": q.mean().detach(),
             "charts/actor_saturation": saturated_share(pre_tanh)}

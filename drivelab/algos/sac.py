@@ -25,7 +25,7 @@ import torch
 
 from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
-from drivelab.training.nets import OffPolicyAgent, make_target, polyak_update
+from drivelab.training.nets import OffPolicyAgent, frozen, make_target, polyak_update
 from drivelab.training.offpolicy import OffPolicyParams, PolicySampling, ReplayCollector, make_optimizers
 from drivelab.training.losses import gradient_step
 from drivelab.training.run import Run
@@ -99,8 +99,9 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, log_alpha: torch.Tenso
     if update_actor:
         detached = features.detach()  # the actor does not train the (image) encoder
         action, log_prob = agent.actor(detached)
-        loss_pi = actor_loss(log_prob, agent.critic(detached, action).min(dim=0).values, alpha)
-        gradient_step(opt.actor, loss_pi)
+        with frozen(agent.critic):   # dQ/da only: no weight gradients for the critics in the actor's step
+            loss_pi = actor_loss(log_prob, agent.critic(detached, action).min(dim=0).values, alpha)
+            gradient_step(opt.actor, loss_pi)
         loss_alpha = alpha_loss(log_alpha, log_prob, target_entropy)
         if hp.autotune:
             gradient_step(opt.alpha, loss_alpha)

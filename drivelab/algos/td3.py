@@ -23,7 +23,7 @@ from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
 from drivelab.training.losses import deterministic_actor_loss, gradient_step, saturated_share
-from drivelab.training.nets import OffPolicyAgent, make_target, polyak_update
+from drivelab.training.nets import OffPolicyAgent, frozen, make_target, polyak_update
 from drivelab.training.offpolicy import (NoisyExploration, NoisyExplorationParams, Optimizers, ReplayCollector,
                                         make_optimizers)
 from drivelab.training.run import Run
@@ -77,9 +77,10 @@ def update(agent: OffPolicyAgent, target: OffPolicyAgent, opt: Optimizers, batch
     if update_actor:
         detached = features.detach()
         pre_tanh = agent.actor.pre_tanh(detached)
-        q_pi = agent.critic(detached, torch.tanh(pre_tanh))[0]       # ascend Q_1 (the paper's choice)
-        loss_pi = deterministic_actor_loss(q_pi, pre_tanh, hp.pre_tanh_l2)
-        gradient_step(opt.actor, loss_pi)
+        with frozen(agent.critic):
+            q_pi = agent.critic(detached, torch.tanh(pre_tanh), members=1)[0]   # ascend Q_1 (the paper's choice)
+            loss_pi = deterministic_actor_loss(q_pi, pre_tanh, hp.pre_tanh_l2)
+            gradient_step(opt.actor, loss_pi)
         polyak_update(target, agent, hp.tau)
         logged["loss/actor"] = loss_pi.detach()
         logged["charts/actor_saturation"] = saturated_share(pre_tanh)
