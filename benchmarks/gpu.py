@@ -3,8 +3,9 @@
 1. Every algorithm trains on the device: ``drivelab train --algo X --device D --steps 3000
    --num-envs 8`` on Pendulum-v1 (vector observations), and PPO and SAC on CarRacing-v3 (images,
    the CNN path). Exit code and wall time per run. With ``--pack``, each run's directory (its
-   last checkpoint and step 0 only: ``keep_checkpoints 1``) goes into one tar.gz, so the runs can be evaluated on a CPU-only machine:
-   ``drivelab eval RUN --episodes 2``; every run is also evaluated there with CUDA hidden.
+   last checkpoint and step 0 only: ``keep_checkpoints 1``) goes into one tar.gz, so the runs can
+   be evaluated on a CPU-only machine: ``drivelab eval RUN --episodes 2``; every run is also
+   evaluated there with CUDA hidden.
 2. Gradient updates/s of TD3 and SAC with the networks and a replay batch on the device, against
    the same on the CPU: hidden [256, 256] and [1024, 1024] x batch 256 and 1024, on MetaDrive's
    observation size (259) and action size (2). Each point is timed for ``--seconds``.

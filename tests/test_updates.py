@@ -296,8 +296,8 @@ def test_the_actor_step_computes_no_weight_gradients_for_the_critics(algo):
     elif algo == "td3":
         out = td3.update(agent, target, opt, batch, td3.Params(), update_actor=True)
     else:
-        out = sac.update(agent, target, torch.nn.Parameter(torch.tensor(0.0)),
-                         sac.Optimizers(*opt, alpha=torch.optim.SGD([torch.nn.Parameter(torch.tensor(0.0))], lr=0.1)),
+        log_alpha = torch.nn.Parameter(torch.tensor(0.0))
+        out = sac.update(agent, target, log_alpha, sac.Optimizers(*opt, alpha=torch.optim.SGD([log_alpha], lr=0.1)),
                          batch, sac.Params(), target_entropy=-2.0)
     assert "loss/actor" in out
     assert len(computed) == len(list(agent.critic.parameters()))
