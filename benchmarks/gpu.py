@@ -157,7 +157,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--seconds", type=float, default=3.0, help="timing per updates/s point")
-    parser.add_argument("--ppo-steps", type=int, default=8192, help="PPO CarRacing steps per device")
+    parser.add_argument("--ppo-steps", type=int, default=4096, help="PPO CarRacing steps per device")
     parser.add_argument("--cpu-threads", type=int, default=os.cpu_count() // 2, help="CPU updates' intra-op threads")
     parser.add_argument("--skip", action="append", default=[], choices=("runs", "updates", "ppo"))
     parser.add_argument("--pack", help="tar.gz of the short runs (last checkpoint each), to evaluate elsewhere")

@@ -1,14 +1,16 @@
 """Every algorithm on CUDA, where there is one (``pytest -m gpu``); skipped on CPU-only machines,
 CI among them. What a CPU can check of the same discipline is in tests/test_devices.py.
 
-Each algorithm trains a short run with its networks on ``cuda``, resumes on ``cuda``, and its
-checkpoint then loads and acts as a CPU policy: the tensors it saved carry no device."""
+Each algorithm trains a short run with its networks on ``cuda`` (evaluating as it goes), resumes on
+``cuda``, and its checkpoint then loads, acts and exports as a CPU policy: the tensors it saved
+carry no device."""
 
 import numpy as np
 import pytest
 import torch
 
 import drivelab
+from drivelab.cli import main
 from drivelab.training.checkpoint import checkpoint_step, list_checkpoints
 
 pytestmark = [pytest.mark.gpu,
@@ -21,10 +23,13 @@ SHORT = {"reinforce": {}, "a2c": {"a2c": {"num_steps": 32}}, "ppo": {"ppo": {"nu
 
 
 @pytest.mark.parametrize("algo", list(SHORT))
-def test_every_algorithm_trains_and_resumes_on_cuda_and_its_checkpoint_acts_on_the_cpu(algo, tmp_path):
+def test_every_algorithm_trains_evaluates_and_resumes_on_cuda_and_its_checkpoint_acts_on_the_cpu(algo, tmp_path):
+    """Evaluation during training (checkpoints/best, its video) runs the networks on cuda too;
+    the checkpoint then loads, acts and exports as a CPU policy."""
     run = tmp_path / algo
-    drivelab.train(algo, "Pendulum-v1", steps=400, seed=0, num_envs=4, run_dir=run, progress=False,
-                   device="cuda", eval={"every": 0}, checkpoint_every=400, **SHORT[algo])
+    drivelab.train(algo, "Pendulum-v1", steps=400, seed=0, num_envs=4, run_dir=run, progress=False, device="cuda",
+                   eval={"every": 400, "episodes": 1, "final": True}, checkpoint_every=400, **SHORT[algo])
+    assert (run / "checkpoints" / "best").is_dir() and list(run.glob("videos/*.mp4"))
     first = checkpoint_step(list_checkpoints(run)[-1])   # REINFORCE's whole episodes overshoot 400
     drivelab.train(run_dir=run, resume=True, steps=first + 400, progress=False)
     assert checkpoint_step(list_checkpoints(run)[-1]) >= first + 400
@@ -32,6 +37,9 @@ def test_every_algorithm_trains_and_resumes_on_cuda_and_its_checkpoint_acts_on_t
     assert all(p.device.type == "cpu" for p in policy.deployed.parameters())
     action, _ = policy.predict(np.zeros(3, np.float32))
     assert action.shape == (1,) and np.isfinite(action).all()
+    with pytest.raises(SystemExit) as exit_:
+        main(["export", str(run), "--format", "torchscript", "--out", str(tmp_path / "exported")])
+    assert not exit_.value.code
 
 
 @pytest.mark.parametrize("algo", ["ppo", "sac"])
