@@ -35,6 +35,7 @@ from drivelab.training.plots import mean_and_ci95, read_metrics
 
 HELDOUT_ENV, EPISODES = "MetaDrive-validation-v0", 200
 METRICS = ("success_rate", "crash_rate", "out_of_road_rate", "route_completion")
+TIMEOUT = "timeout_rate"  # recorded since 2026-11-27: seeds cached before it have none
 
 
 def train_seed(config: str, seed: int, run_dir: Path, overrides: dict | None = None) -> dict:
@@ -64,9 +65,11 @@ def heldout(run_dir: Path) -> dict:
 
 
 def outcomes(result) -> dict:
-    """The means of METRICS and, under ``per_episode``, each episode's (for model cards)."""
-    return {**{m: result.summary()[m] for m in METRICS},
-            "per_episode": {m: [round(float(x), 4) for x in result.metrics[m]] for m in METRICS}}
+    """The means of METRICS (and TIMEOUT) and, under ``per_episode``, each episode's (for model cards)."""
+    summary = result.summary()
+    names = [m for m in (*METRICS, TIMEOUT) if m in summary]
+    return {**{m: summary[m] for m in names},
+            "per_episode": {m: [round(float(x), 4) for x in result.metrics[m]] for m in names}}
 
 
 def selection_curve(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -128,7 +131,9 @@ def main() -> int:
             result = evaluate_baseline(name, baseline_env(env_id=HELDOUT_ENV), EPISODES)
             baselines[name] = outcomes(result)
     summary = {}
-    for metric in (*METRICS, "minutes", "steps"):
+    for metric in (*METRICS, TIMEOUT, "minutes", "steps"):
+        if not all(metric in row for row in table.values()):
+            continue
         values = np.array([row[metric] for row in table.values()], float)
         mean, half = mean_and_ci95(values)
         summary[metric] = {"mean": float(mean), "ci95": float(half), "min": float(values.min()), "max": float(values.max())}

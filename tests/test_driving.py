@@ -106,9 +106,11 @@ def test_shaped_reward_terms_reach_the_episode_metrics():
                 break
         assert truncated and info["reward/cte"] > 15 and info["reward/progress"] > 0
         assert 0 <= info["mean_abs_cte"] < 0.5
-        batched = {k: np.array([v]) for k, v in info.items() if k.startswith("reward/") or k == "route_completion"}
-        batched["mean_abs_cte"] = np.array([info["mean_abs_cte"]])
-        assert set(episode_info(batched, 0)) >= {"reward/cte", "reward/progress", "route_completion", "mean_abs_cte"}
+        batched = {k: np.array([v]) for k, v in info.items()
+                   if k.startswith("reward/") or k in ("route_completion", "mean_abs_cte", "timeout")}
+        metrics = episode_info(batched, 0)
+        assert set(metrics) >= {"reward/cte", "reward/progress", "route_completion", "mean_abs_cte", "timeout_rate"}
+        assert metrics["timeout_rate"] == 1.0, "the step limit ended it short of the destination"
     finally:
         env.close()
 

@@ -51,6 +51,7 @@ def _check_metadrive_id():
                 break
         assert t == 24 and truncated and not terminated, "the step limit is a truncation, not a termination"
         assert set(info) >= {"success", "crash", "out_of_road", "route_completion", "cost", "speed"}
+        assert info["timeout"] and not info["success"], "a car that stood still until the step limit timed out"
         frame = env.unwrapped.render_mode is None and env.unwrapped.metadrive.render(
             mode="topdown", window=False, screen_size=(64, 64))
         assert frame.shape == (64, 64, 3)

@@ -15,7 +15,8 @@ What this adapter adds to ``metadrive.MetaDriveEnv``:
   ends its episode. drivelab sets ``horizon=1000`` (MetaDrive's later default); reaching it is
   reported as ``truncated``, never ``terminated``.
 * **A lean, stable ``info``** (MetaDrive's full dict costs time in vector envs at every step):
-  ``success``, ``crash`` and ``out_of_road`` (did it happen in this episode so far),
+  ``success``, ``crash`` and ``out_of_road`` (did it happen in this episode so far), ``timeout``
+  (the step limit ended it before the destination),
   ``route_completion`` (0..1), ``cost``, ``speed`` (m/s) and ``scenario``, plus the lane geometry
   that driving rewards and metrics are written against (:func:`lane_geometry`): ``cte``,
   ``heading_error``, ``speed_along_lane``, ``collided`` (this step) and ``native_reward``.
@@ -195,6 +196,8 @@ class MetaDriveGym(gym.Env):
             "success": bool(info.get("arrive_dest", False)),
             "crash": self._crashed,
             "out_of_road": self._left_road,
+            # the step limit ended the episode short of the destination: a car that stalled
+            "timeout": bool(info.get("max_step", False)) and not info.get("arrive_dest", False),
             "route_completion": float(info.get("route_completion", 0.0)),
             "cost": float(info.get("cost", 0.0)),
             "speed": float(info.get("velocity", 0.0)),  # m/s

@@ -36,6 +36,7 @@ h1 { margin-bottom: 0.2em; } .muted { color: #777; } section { margin-bottom: 3e
 """
 COLUMNS = [("return_mean", "return", False), ("length_mean", "length", False), ("success_rate", "success", True),
            ("crash_rate", "crash", True), ("out_of_road_rate", "out of road", True),
+           ("timeout_rate", "timeout", True),
            ("route_completion", "route completion", True), ("mean_abs_cte", "mean |CTE| (m)", False)]
 
 

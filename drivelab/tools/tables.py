@@ -11,7 +11,7 @@ from typing import Any
 # The driving metrics of an evaluation summary (drivelab.training.evaluation.EvalResult.summary),
 # as (key, column label, row label); rates and route completion print as percentages.
 DRIVING_METRICS = (("success_rate", "success", "success rate"), ("crash_rate", "crash", "crash rate"),
-                   ("out_of_road_rate", "off road", "out-of-road rate"),
+                   ("out_of_road_rate", "off road", "out-of-road rate"), ("timeout_rate", "timeout", "timeout rate"),
                    ("route_completion", "route", "route completion"))
 
 

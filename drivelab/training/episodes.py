@@ -22,6 +22,7 @@ DRIVING_METRICS = {
     "success": "success_rate",
     "crash": "crash_rate",
     "out_of_road": "out_of_road_rate",
+    "timeout": "timeout_rate",               # the step limit ended the episode before the destination
     "route_completion": "route_completion",
     "mean_abs_cte": "mean_abs_cte",          # metres from the lane centre, averaged over the episode
 }
