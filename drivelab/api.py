@@ -317,9 +317,9 @@ def make_env(env: str | EnvConfig, **kwargs: Any) -> gym.Env:
 def evaluate(policy: TrainedPolicy, env: str | EnvConfig | gym.Env | None = None, episodes: int = 10,
              seed: int = 0, num_envs: int = 1, deterministic: bool = True) -> dict[str, float]:
     """Deterministic episodes of ``policy`` (episode k with seed ``seed + k``); returns the dict
-    that ``drivelab eval --json`` prints. ``env``: None (the policy's own env), an env id (its
-    kwargs are dropped if it differs from the training env's, as in ``drivelab eval --env``), an
-    :class:`EnvConfig`, or an env instance."""
+    that ``drivelab eval --json`` prints. ``env``: None (the policy's own env), an env id (where
+    it differs from the training env's, the kwargs but ``vehicle_config`` are dropped, as in
+    ``drivelab eval --env``), an :class:`EnvConfig`, or an env instance."""
     if isinstance(env, gym.Env):
         envs = SyncVectorEnv([lambda: env], autoreset_mode=AutoresetMode.DISABLED)
         return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic).summary()
@@ -328,6 +328,6 @@ def evaluate(policy: TrainedPolicy, env: str | EnvConfig | gym.Env | None = None
     elif env is None or env == policy.env_config.id:
         env_cfg = policy.env_config
     else:
-        env_cfg = dataclasses.replace(policy.env_config, id=env, kwargs={})
+        env_cfg = policy.env_config.on(env)
     env_cfg = dataclasses.replace(env_cfg, num_envs=max(1, min(num_envs, episodes)))
     return play(env_cfg, policy, episodes, seed, deterministic).summary()

@@ -47,7 +47,8 @@ class EvalConfig:
     final: bool = False
     # Another env id for held-out evaluation (e.g. MetaDrive-validation-v0); None: the training
     # env. With another id the training env's kwargs are dropped (they may redefine the
-    # scenarios) and `kwargs` is used instead; wrappers (action grid, filters, reward) are kept.
+    # scenarios) and `kwargs` is used instead; wrappers (action grid, filters, reward) and the
+    # kwargs that shape the observation (MetaDrive's vehicle_config) are kept.
     env_id: str | None = None
     kwargs: dict[str, Any] = field(default_factory=dict)
     seed: int = 10_000             # episode k is reset with seed + k

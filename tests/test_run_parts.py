@@ -14,6 +14,7 @@ from gymnasium.vector import AutoresetMode
 from drivelab.algos import ALGORITHMS
 from drivelab.api import build_config
 from drivelab.envs import env_spaces, make_vector_env
+from drivelab.envs.config import EnvConfig
 from drivelab.errors import DrivelabError
 from drivelab.training.checkpoint import load_checkpoint
 from drivelab.training.episodes import EpisodeTracker
@@ -146,6 +147,17 @@ def test_the_evaluation_env_takes_the_eval_id_and_kwargs(tmp_path):
     assert eval_env_config(cfg).kwargs == {"max_episode_steps": 50, "sutton_barto_reward": True}
     other = _config(tmp_path, eval={"env_id": "Acrobot-v1", "kwargs": {}})
     assert eval_env_config(other).id == "Acrobot-v1" and eval_env_config(other).kwargs == {}
+
+
+def test_another_env_id_keeps_the_kwargs_that_shape_the_observation():
+    # MetaDrive's num_others adds 16 entries to the observation: a policy trained with it must
+    # be evaluated with it, while the training set's scenario range and rewards stay behind
+    cfg = EnvConfig(id="MetaDrive-1000envs-v0", obs_filters=["a"],
+                    kwargs={"vehicle_config": {"lidar": {"num_others": 4}}, "success_reward": 30.0, "start_seed": 5})
+    other = cfg.on("MetaDrive-validation-v0", {"traffic_density": 0.2})
+    assert other.id == "MetaDrive-validation-v0" and other.obs_filters == ["a"]
+    assert other.kwargs == {"vehicle_config": {"lidar": {"num_others": 4}}, "traffic_density": 0.2}
+    assert cfg.kwargs["start_seed"] == 5 and cfg.id == "MetaDrive-1000envs-v0"
 
 
 # ---- checkpoints and resume -------------------------------------------------------------------

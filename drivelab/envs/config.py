@@ -7,6 +7,7 @@ It lives with the envs, which build from it (:func:`drivelab.envs.make_vector_en
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -16,6 +17,9 @@ from drivelab.envs.wrappers import parse_grid
 from drivelab.errors import DrivelabError
 
 BACKENDS = ("auto", "sync", "async", "ray")
+# kwargs that shape what the policy senses and drives (MetaDrive's vehicle_config: its lidar,
+# num_others, ...): a policy evaluated on another env id keeps them, or its observation changes.
+POLICY_KWARGS = ("vehicle_config",)
 
 
 @dataclass
@@ -79,6 +83,13 @@ class EnvConfig:
         if self.reward is not None:
             validate_reward_config(self.reward, f"{where}.reward")
 
+
+    def on(self, env_id: str, kwargs: dict[str, Any] | None = None) -> EnvConfig:
+        """This config (wrappers, filters, action grid) on another env id, e.g. a validation set:
+        the kwargs that shape the policy's observation and car (:data:`POLICY_KWARGS`) go along;
+        the others, which may redefine the scenario range, traffic or reward, give way to ``kwargs``."""
+        kept = {key: value for key, value in self.kwargs.items() if key in POLICY_KWARGS}
+        return dataclasses.replace(self, id=env_id, kwargs={**kept, **(kwargs or {})})
 
     def resolved_step_groups(self) -> int:
         """``step_groups``, with None resolved to 1 (lockstep: on this 2-core machine groups measured

@@ -71,7 +71,8 @@ def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None
 
     ``env_id`` evaluates on another env (e.g. train on ``MetaDrive-100envs-v0``, evaluate on
     ``MetaDrive-validation-v0``); the training env's kwargs are then dropped, as they may
-    redefine that env's scenario range, and ``env_kwargs`` are used instead. A ``recorder``
+    redefine that env's scenario range, and ``env_kwargs`` are used instead (all but those
+    that shape the observation, :meth:`~drivelab.envs.config.EnvConfig.on`). A ``recorder``
     (:class:`drivelab.training.video.Recorder`) films the episodes, on one env. ``path`` may
     also name a shipped driver (``drivelab-driver``).
     """
@@ -79,7 +80,7 @@ def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None
     cfg = checkpoint_config(ckpt)
     env_cfg = cfg.env
     if env_id is not None and env_id != env_cfg.id:
-        env_cfg.id, env_cfg.kwargs = env_id, {}
+        env_cfg = env_cfg.on(env_id)
     env_cfg.kwargs.update(env_kwargs or {})
     env_cfg.num_envs = 1 if recorder is not None else max(1, min(num_envs or env_cfg.num_envs, episodes))
     result = play(env_cfg, policy_from_checkpoint(ckpt, cfg, env_cfg), episodes, seed, deterministic, recorder=recorder)

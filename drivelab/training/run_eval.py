@@ -134,7 +134,8 @@ class RunEvaluation:
 
 def eval_env_config(cfg: TrainConfig) -> EnvConfig:
     """The env config of periodic evaluation: the training env's, or ``eval.env_id`` with the
-    training env's wrappers and ``eval.kwargs`` instead of its kwargs."""
+    training env's wrappers and ``eval.kwargs`` instead of its kwargs (those that shape the
+    observation stay: :meth:`EnvConfig.on`)."""
     if cfg.eval.env_id is None or cfg.eval.env_id == cfg.env.id:
         return dataclasses.replace(cfg.env, kwargs={**cfg.env.kwargs, **cfg.eval.kwargs})
-    return dataclasses.replace(cfg.env, id=cfg.eval.env_id, kwargs=dict(cfg.eval.kwargs))
+    return cfg.env.on(cfg.eval.env_id, cfg.eval.kwargs)
