@@ -98,7 +98,10 @@ def test_reinforce_solves_cartpole(tmp_path):
 
 def test_cli_train_resume_eval_on_metadrive(tmp_path, run_cli):
     run_dir = tmp_path / "md"
-    common = ["--env.kwargs.horizon", "60", "--env.kwargs.traffic_density", "0.0", "--reinforce.batch_steps", "100"]
+    # num_others adds the 4 nearest vehicles to the observation (275-d): evaluating on another
+    # env id below must keep it, or the policy would see the 259-d layout
+    common = ["--env.kwargs.horizon", "60", "--env.kwargs.traffic_density", "0.0", "--reinforce.batch_steps", "100",
+              "--env.kwargs.vehicle_config.lidar.num_others", "4"]
     out = run_cli("train", "--algo", "reinforce", "--env", "MetaDrive-10env-v0", "--actions", "3x3", "--steps", "100",
                   "--num-envs", "1", "--run-dir", run_dir, "--no-progress", *common)
     assert out.returncode == 0, out.stderr
