@@ -83,7 +83,6 @@ class EnvConfig:
         if self.reward is not None:
             validate_reward_config(self.reward, f"{where}.reward")
 
-
     def on(self, env_id: str, kwargs: dict[str, Any] | None = None) -> EnvConfig:
         """This config (wrappers, filters, action grid) on another env id, e.g. a validation set:
         the kwargs that shape the policy's observation and car (:data:`POLICY_KWARGS`) go along;
