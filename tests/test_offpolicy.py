@@ -16,7 +16,7 @@ from drivelab.api import build_config
 from drivelab.config import read_yaml
 from drivelab.errors import DrivelabError
 from drivelab.api import evaluate_checkpoint
-from drivelab.training.nets import EnsembleLinear, OffPolicyAgent, polyak_update, squashed_gaussian_log_prob
+from drivelab.training.nets import EnsembleBatchNorm, EnsembleLinear, OffPolicyAgent, polyak_update, squashed_gaussian_log_prob
 from drivelab.api import train
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -80,6 +80,37 @@ def test_critic_layer_norm_normalises_each_critics_hidden_layers(tmp_path):
     assert math.isfinite(result.summary()["return_mean"])
     tensors = load_file(str(list_checkpoints(tmp_path / "ln")[-1] / "tensors.safetensors"))
     assert "module/policy/critic.net.3.weight" in tensors        # Linear, LayerNorm, ReLU, Linear...
+
+
+def test_ensemble_batch_norm_normalises_each_member_over_the_batch():
+    norm = EnsembleBatchNorm(2, 3, momentum=0.1, eps=0.0)
+    x = torch.randn(2, 50, 3) * torch.tensor([1.0, 5.0, 0.1]) + torch.tensor([[[2.0]], [[-7.0]]])
+    out = norm(x)                                                    # train mode: this batch's statistics
+    torch.testing.assert_close(out.mean(dim=1), torch.zeros(2, 3), atol=1e-5, rtol=0)
+    torch.testing.assert_close(out.var(dim=1, unbiased=False), torch.ones(2, 3), atol=1e-4, rtol=0)
+    torch.testing.assert_close(norm.running_mean, 0.1 * x.mean(dim=1, keepdim=True))
+    torch.testing.assert_close(norm.running_var, 0.9 + 0.1 * x.var(dim=1, keepdim=True))
+    norm.eval()                                                      # eval mode: the running statistics
+    y = torch.randn(2, 4, 3)
+    torch.testing.assert_close(norm(y), (y - norm.running_mean) / norm.running_var.sqrt())
+    torch.testing.assert_close(norm(y[:1]), norm(y)[:1])             # a 1-member input uses member 0's
+    with torch.no_grad():                                            # each member's own gain and bias
+        norm.weight.copy_(torch.tensor([2.0, 3.0]).view(2, 1, 1))
+        norm.bias.copy_(torch.tensor([-5.0, 1.0]).view(2, 1, 1))
+    scale = torch.tensor([2.0, 3.0]).view(2, 1, 1)
+    shift = torch.tensor([-5.0, 1.0]).view(2, 1, 1)
+    torch.testing.assert_close(norm(y), (y - norm.running_mean) / norm.running_var.sqrt() * scale + shift)
+
+
+def test_td3_crossq_trains_without_targets_and_its_checkpoint_evaluates(tmp_path):
+    train(_pendulum(tmp_path / "cq", "td3", 300, crossq=True), progress=False)
+    tensors = load_file(str(list_checkpoints(tmp_path / "cq")[-1] / "tensors.safetensors"))
+    assert not any(k.startswith("module/target/") for k in tensors)
+    assert "module/policy/critic.net.0.running_mean" in tensors      # batch norm, then the first linear
+    result, _, _ = evaluate_checkpoint(tmp_path / "cq", episodes=1)
+    assert math.isfinite(result.summary()["return_mean"])
+    with pytest.raises(DrivelabError, match="crossq"):
+        _pendulum(tmp_path / "both", "td3", 300, crossq=True, critic_layer_norm=True)
 
 
 def test_discrete_actions_are_refused_clearly():

@@ -231,6 +231,43 @@ def test_td3_update_smooths_the_target_action_and_delays_the_actor():
     _assert_params(target, _polyak(target_before, agent, 0.1))
 
 
+def test_td3_crossq_update_one_joint_batch_normalised_pass_and_no_targets():
+    # CrossQ: y = r + gamma * (1 - terminated) * min_e Q_e(s', a') from the same train-mode pass as
+    # Q_e(s, a), over [(s, a); (s', a')]; the actor's step reads the running statistics.
+    torch.manual_seed(0)
+    agent = OffPolicyAgent(OBS, BOX, [8], "relu", stochastic=False, critics=2, critic_batch_norm=True)
+    batch, hp = _replay_batch(), td3.Params(gamma=0.9, policy_noise=0.3, noise_clip=0.4, crossq=True)
+    torch.manual_seed(7)
+    with torch.no_grad():
+        noise = (torch.randn(B, 2) * 0.3).clamp(-0.4, 0.4)
+        next_action = (agent.actor(batch.next_obs) + noise).clamp(-1, 1)
+    joint_obs, joint_actions = torch.cat([batch.obs, batch.next_obs]), torch.cat([batch.actions, next_action])
+
+    def reference_loss(critic):
+        q_both = critic(joint_obs, joint_actions)                                   # (2, 2B), train mode
+        y = batch.rewards + 0.9 * (1 - batch.terminated) * q_both[:, B:].detach().min(dim=0).values
+        return (q_both[:, :B] - y).pow(2).mean(dim=1).sum()
+
+    critic_expected, ref_q = _expected_after_sgd(agent.critic, reference_loss, lr=0.05)
+    actor_before = copy.deepcopy(agent.actor)
+    torch.manual_seed(7)
+    out = td3.update(agent, None, _sgd(agent), batch, hp, update_actor=True)
+    assert out["loss/critic"].item() == pytest.approx(ref_q.item(), rel=1e-5)
+    _assert_params(agent.critic, critic_expected)
+    # the input norm moved once, toward the joint batch's mean (momentum 0.01): not toward (s, a)
+    # alone, and not again in the actor's step
+    first_norm = agent.critic.net[0]
+    joint_mean = torch.cat([joint_obs, joint_actions], dim=1).mean(dim=0)
+    torch.testing.assert_close(first_norm.running_mean[:, 0], 0.01 * joint_mean.expand(2, -1))
+    # the actor ascends Q_1 of the updated critic, normalised with the running statistics
+    agent.critic.eval()
+    loss_pi = -agent.critic(batch.obs, actor_before(batch.obs))[0].mean()
+    assert out["loss/actor"].item() == pytest.approx(loss_pi.item(), rel=1e-5)
+    grads = torch.autograd.grad(loss_pi, list(actor_before.parameters()))
+    for (name, p), g in zip(actor_before.named_parameters(), grads):
+        torch.testing.assert_close(dict(agent.actor.named_parameters())[name].detach(), p.detach() - 0.02 * g)
+
+
 def test_td3_pre_tanh_penalty_by_hand_and_on_a_saturated_actor():
     from drivelab.training.losses import deterministic_actor_loss
 

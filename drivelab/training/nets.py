@@ -291,25 +291,68 @@ class EnsembleLinear(nn.Module):
         return torch.baddbmm(self.bias[:members], x, self.weight[:members])
 
 
+class EnsembleBatchNorm(nn.Module):
+    """Batch normalisation of each of E members on its own: (E, B, H) -> (E, B, H), each feature
+    of each member scaled to zero mean and unit variance over the batch, then by its own learned
+    gain and bias (Ioffe & Szegedy 2015). In train mode it uses the batch's statistics and moves
+    the running ones toward them by ``momentum``; in eval mode it uses the running ones. An input
+    with e < E members goes through the first e.
+
+    The learned bias matters here: after a zero-mean layer, a critic's output could only shift its
+    mean through the last layer's single bias, one learning-rate step per update, far too slowly
+    for returns of -100s (measured on Pendulum: Q stuck near -lr * updates, the actor saturated).
+    """
+
+    def __init__(self, ensemble: int, width: int, momentum: float = 0.01, eps: float = 1e-3):
+        super().__init__()
+        self.weight = nn.Parameter(torch.ones(ensemble, 1, width))
+        self.bias = nn.Parameter(torch.zeros(ensemble, 1, width))
+        self.register_buffer("running_mean", torch.zeros(ensemble, 1, width))
+        self.register_buffer("running_var", torch.ones(ensemble, 1, width))
+        self.momentum, self.eps = momentum, eps
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        members = x.shape[0]
+        if self.training:
+            var, mean = torch.var_mean(x, dim=1, keepdim=True, correction=0)
+            with torch.no_grad():
+                self.running_mean[:members].lerp_(mean, self.momentum)
+                unbiased = var * (x.shape[1] / max(x.shape[1] - 1, 1))
+                self.running_var[:members].lerp_(unbiased, self.momentum)
+        else:
+            mean, var = self.running_mean[:members], self.running_var[:members]
+        return (x - mean) * torch.rsqrt(var + self.eps) * self.weight[:members] + self.bias[:members]
+
+
 class Critics(nn.Module):
     """E Q-networks Q_e(s, a) over features of s: forward returns (E, B).
 
     ``layer_norm`` normalises each hidden layer before its activation (Ball et al. 2023, "RLPD":
     it bounds how far Q can extrapolate to actions the buffer never saw). The norm has no learned
     gain or bias, so the E critics still share no parameters.
+
+    ``batch_norm`` normalises the input of every linear layer, (s, a) included, over the batch
+    (CrossQ, Bhatt et al. 2024): the train-mode pass must then see (s, a) and (s', a') together,
+    so that both are normalised with the same statistics (see ``drivelab.algos.td3``).
     """
 
     def __init__(self, feature_dim: int, act_dim: int, hidden: Sequence[int], act: str, ensemble: int = 2,
-                 layer_norm: bool = False):
+                 layer_norm: bool = False, batch_norm: bool = False):
         super().__init__()
+        if layer_norm and batch_norm:
+            raise DrivelabError("the critics take layer norm or batch norm (CrossQ), not both")
         layers: list[nn.Module] = []
         width = feature_dim + act_dim
         for h in hidden:
+            if batch_norm:
+                layers.append(EnsembleBatchNorm(ensemble, width))
             layers.append(EnsembleLinear(ensemble, width, h))
             if layer_norm:
                 layers.append(nn.LayerNorm(h, elementwise_affine=False))
             layers.append(activation(act)())
             width = h
+        if batch_norm:
+            layers.append(EnsembleBatchNorm(ensemble, width))
         layers.append(EnsembleLinear(ensemble, width, 1))
         self.net = nn.Sequential(*layers)
         self.ensemble = ensemble
@@ -381,7 +424,8 @@ class OffPolicyAgent(nn.Module):
     """
 
     def __init__(self, obs_space: gym.Space, act_space: gym.Space, hidden: Sequence[int], act: str,
-                 stochastic: bool, critics: int = 2, critic_layer_norm: bool = False):
+                 stochastic: bool, critics: int = 2, critic_layer_norm: bool = False,
+                 critic_batch_norm: bool = False):
         super().__init__()
         if not (isinstance(act_space, gym.spaces.Box) and len(act_space.shape) == 1):
             raise DrivelabError(f"DDPG, TD3 and SAC need a continuous 1-D Box action space, not {act_space} "
@@ -395,7 +439,8 @@ class OffPolicyAgent(nn.Module):
         act_dim = act_space.shape[0]
         actor_cls = SquashedGaussianActor if stochastic else DeterministicActor
         self.actor = actor_cls(feature_dim, act_dim, hidden, act)
-        self.critic = Critics(feature_dim, act_dim, hidden, act, ensemble=critics, layer_norm=critic_layer_norm)
+        self.critic = Critics(feature_dim, act_dim, hidden, act, ensemble=critics, layer_norm=critic_layer_norm,
+                              batch_norm=critic_batch_norm)
         self.stochastic = stochastic
         # [-1, 1] -> [low, high]
         low, high = (torch.tensor(b, dtype=torch.float32) for b in (act_space.low, act_space.high))
