@@ -14,7 +14,10 @@ training wall clock and env steps, the checkpoint's step; over seeds the mean wi
 confidence interval (Student's t) and the minimum. The PNG plots success on the selection
 scenarios (the in-training evaluations) against training wall-clock minutes per seed, with the
 held-out success of the chosen checkpoints and of the baselines. Every result is cached in the
-run directories and the JSON: running it again only does what is missing.
+run directories and the JSON: running it again only does what is missing. The JSON keeps each
+seed's row with its selection curve and the resolved config (``recipe``), so a seed whose run
+directory is gone (another machine, an earlier session) stays in the table as long as the recipe
+is the same.
 """
 
 from __future__ import annotations
@@ -72,23 +75,24 @@ def outcomes(result) -> dict:
             "per_episode": {m: [round(float(x), 4) for x in result.metrics[m]] for m in names}}
 
 
-def selection_curve(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(training minutes, success on the selection scenarios) of the in-training evaluations."""
+def selection_curve(run_dir: Path) -> dict[str, list[float]]:
+    """Training minutes and success on the selection scenarios of the in-training evaluations."""
     _, seconds, values = read_metrics(run_dir)["eval/success_rate"]  # seconds since the run's first log row
-    return seconds / 60, values
+    return {"minutes": [round(float(x), 2) for x in seconds / 60], "success": [float(x) for x in values]}
 
 
-def plot(runs: dict[int, Path], table: dict, baselines: dict, out: Path) -> None:
+def plot(table: dict, baselines: dict, out: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8, 4.8))
-    for seed, run_dir in runs.items():
-        minutes, success = selection_curve(run_dir)
-        line, = ax.plot(minutes, success, "o-", alpha=0.8, label=f"seed {seed}: selection scenarios 200-229")
-        row = table[str(seed)]
+    for seed, row in table.items():
+        curve = row.get("selection")   # rows kept from before the curves were saved have none
+        label = f"seed {seed}: selection scenarios 200-229" if curve else f"seed {seed} (curve not kept)"
+        line, = ax.plot(curve["minutes"] if curve else [], curve["success"] if curve else [], "o-", alpha=0.8,
+                        label=label)
         ax.plot([row["minutes"]], [row["success_rate"]], "*", markersize=13, color=line.get_color())
     for (name, summary), color in zip(baselines.items(), ("tab:green", "tab:gray")):
         ax.axhline(summary["success_rate"], color=color, linestyle=":", label=f"{name} (held-out 0-199)")
@@ -115,16 +119,21 @@ def main() -> int:
                         help="config overrides for an ablation arm, e.g. td3.noise_decay_steps=200000")
     args = parser.parse_args()
     overrides = {key: parse_value(value) for key, _, value in (item.partition("=") for item in args.set)}
+    recipe = merge_overrides(read_yaml(args.config), overrides)
     previous = json.loads(args.out.read_text()) if args.out.is_file() else {}
-    runs, table = {}, {}
+    kept = previous.get("seeds", {}) if previous.get("recipe") == recipe else {}
+    table = {}
     for seed in args.seeds:
         run_dir = args.runs / f"seed_{seed}"
+        if not (run_dir / "training.json").is_file() and str(seed) in kept:
+            table[str(seed)] = kept[str(seed)]       # trained and evaluated before, with this recipe
+            continue
         if args.skip_train and not (run_dir / "training.json").is_file():
             continue
         trained = train_seed(args.config, seed, run_dir, overrides)
-        table[str(seed)] = {**trained, **{k: v for k, v in heldout(run_dir).items() if k != "per_episode"}}
-        runs[seed] = run_dir
-        print(json.dumps({"seed": seed, **table[str(seed)]}), flush=True)
+        row = {k: v for k, v in heldout(run_dir).items() if k != "per_episode"}
+        table[str(seed)] = {**trained, **row, "selection": selection_curve(run_dir)}
+        print(json.dumps({"seed": seed, **{k: v for k, v in table[str(seed)].items() if k != "selection"}}), flush=True)
     baselines = previous.get("baselines") or {}
     for name in ("metadrive-expert", "random"):
         if name not in baselines:
@@ -137,14 +146,15 @@ def main() -> int:
         values = np.array([row[metric] for row in table.values()], float)
         mean, half = mean_and_ci95(values)
         summary[metric] = {"mean": float(mean), "ci95": float(half), "min": float(values.min()), "max": float(values.max())}
-    result = {"benchmark": "drive-recipe", "config": args.config, "overrides": overrides, "metadrive_version": version("metadrive-simulator"),
+    result = {"benchmark": "drive-recipe", "config": args.config, "overrides": overrides, "recipe": recipe,
+              "metadrive_version": version("metadrive-simulator"),
               "protocol": "train on MetaDrive-1000envs (start seed 1000, 1000 scenarios); report checkpoints/best, "
                           "chosen on validation scenarios 200-229 during training, on the 200 unseen scenarios "
                           "0-199 (MetaDrive-validation-v0, default traffic, deterministic actions)",
               "seeds": table, "summary": summary, "baselines": baselines}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
-    plot(runs, table, baselines, args.out.with_suffix(".png"))
+    plot(table, baselines, args.out.with_suffix(".png"))
     success = summary["success_rate"]
     print(f"held-out success over {len(table)} seeds: {success['mean']:.3f} ± {success['ci95']:.3f} "
           f"(min {success['min']:.3f}); expert {baselines['metadrive-expert']['success_rate']:.3f}, "

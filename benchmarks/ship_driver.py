@@ -30,6 +30,13 @@ PROTOCOL = ("MetaDrive's generalization protocol: trained on MetaDrive-1000envs 
             "(MetaDrive-validation-v0, default traffic), episode k on scenario k")
 
 
+def observation_description(env_kwargs: dict) -> str:
+    """What the driver sees: MetaDrive's lidar state, with the nearest vehicles when the config adds them."""
+    others = env_kwargs.get("vehicle_config", {}).get("lidar", {}).get("num_others", 0)
+    nearest = f", and the relative position and velocity of the {others} nearest vehicles" if others else ""
+    return f"MetaDrive's lidar state: ego state, navigation and 240 lidar beams{nearest}"
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run", type=Path)
@@ -66,7 +73,7 @@ def main() -> int:
                              f"drivelab eval runs/{args.name}/checkpoints/best --env MetaDrive-validation-v0 "
                              f"--episodes 200 --num-envs 2 --json",
             },
-            "observation": "MetaDrive's lidar state: ego state, navigation and 240 lidar beams",
+            "observation": observation_description(cfg.env.kwargs),
             "observation_shape": list(policy.observation_space.shape),
             "evaluation": {
                 "protocol": PROTOCOL, "episodes": len(heldout["per_episode"]["success_rate"]),

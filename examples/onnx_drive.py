@@ -37,8 +37,11 @@ def main() -> None:
     # MetaDrive downloads a 3D asset pack when an engine starts; physics and state observations
     # do not use it, so switch the download off (as drivelab does).
     BaseEngine.try_pull_asset = staticmethod(lambda: None)
+    # vehicle_config shapes the observation (e.g. lidar.num_others: the nearest vehicles): it must
+    # be the one the policy trained with; the rest of the training kwargs (rewards) do not matter here.
+    vehicle_config = meta["env_side"]["env_kwargs"].get("vehicle_config", {})
     env = MetaDriveEnv({"use_render": False, "horizon": 1000, "start_seed": args.start_seed,
-                        "num_scenarios": args.episodes, "log_level": 50})
+                        "num_scenarios": args.episodes, "log_level": 50, "vehicle_config": vehicle_config})
     try:
         for k in range(args.episodes):
             obs, _ = env.reset(seed=args.start_seed + k)
