@@ -16,7 +16,8 @@ from drivelab.api import build_config
 from drivelab.config import read_yaml
 from drivelab.errors import DrivelabError
 from drivelab.api import evaluate_checkpoint
-from drivelab.training.nets import EnsembleBatchNorm, EnsembleLinear, OffPolicyAgent, polyak_update, squashed_gaussian_log_prob
+from drivelab.training.nets import (EnsembleBatchNorm, EnsembleLinear, OffPolicyAgent, polyak_update,
+                                   squashed_gaussian_log_prob)
 from drivelab.api import train
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -83,6 +84,7 @@ def test_critic_layer_norm_normalises_each_critics_hidden_layers(tmp_path):
 
 
 def test_ensemble_batch_norm_normalises_each_member_over_the_batch():
+    torch.manual_seed(0)
     norm = EnsembleBatchNorm(2, 3, momentum=0.1, eps=0.0)
     x = torch.randn(2, 50, 3) * torch.tensor([1.0, 5.0, 0.1]) + torch.tensor([[[2.0]], [[-7.0]]])
     out = norm(x)                                                    # train mode: this batch's statistics

@@ -300,7 +300,7 @@ class EnsembleBatchNorm(nn.Module):
 
     The learned bias matters here: after a zero-mean layer, a critic's output could only shift its
     mean through the last layer's single bias, one learning-rate step per update, far too slowly
-    for returns of -100s (measured on Pendulum: Q stuck near -lr * updates, the actor saturated).
+    for returns of -100s (measured on Pendulum: without them Q stayed near -lr * updates).
     """
 
     def __init__(self, ensemble: int, width: int, momentum: float = 0.01, eps: float = 1e-3):
