@@ -81,7 +81,7 @@ def selection_curve(run_dir: Path) -> dict[str, list[float]]:
     return {"minutes": [round(float(x), 2) for x in seconds / 60], "success": [float(x) for x in values]}
 
 
-def plot(table: dict, baselines: dict, out: Path) -> None:
+def plot(table: dict, baselines: dict, algo: str, out: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -102,7 +102,7 @@ def plot(table: dict, baselines: dict, out: Path) -> None:
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="upper left")
-    ax.set_title("drive recipe (TD3, env workers acting) on MetaDrive's protocol")
+    ax.set_title(f"drive recipe ({algo.upper()}, env workers acting) on MetaDrive's protocol")
     fig.tight_layout()
     fig.savefig(out, dpi=100)
     plt.close(fig)
@@ -154,7 +154,7 @@ def main() -> int:
               "seeds": table, "summary": summary, "baselines": baselines}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
-    plot(table, baselines, args.out.with_suffix(".png"))
+    plot(table, baselines, recipe["algo"], args.out.with_suffix(".png"))
     success = summary["success_rate"]
     print(f"held-out success over {len(table)} seeds: {success['mean']:.3f} ± {success['ci95']:.3f} "
           f"(min {success['min']:.3f}); expert {baselines['metadrive-expert']['success_rate']:.3f}, "
