@@ -135,7 +135,8 @@ def train(cfg: TrainConfig, run: Run) -> None:
     if hp.compile:
         agent.compile_networks()
     explore = NoisyExploration(hp, collector.num_envs, collector.act_space.shape[0], seed=cfg.seed)
-    collector.start(run.start({"policy": agent} | ({"target": target} if target else {}), opt._asdict(), policy=agent), exploration=explore)
+    checkpointed = {"policy": agent} if target is None else {"policy": agent, "target": target}
+    collector.start(run.start(checkpointed, opt._asdict(), policy=agent), exploration=explore)
     try:
         while not run.done:
             # 1. Act: uniform random during the heat-up, then mu(s) + exploration noise. In this
