@@ -1,0 +1,82 @@
+"""What one SAC update costs at the drive recipe's shapes, per batch size and ``actor_every``, as JSON.
+
+The learner's CPU per env step is (ms per update) x ``utd``; on two cores it is what keeps the
+simulators waiting (docs/results.md, "Where the time goes"). Timed on random tensors shaped as
+``configs/drive.yaml``'s (275-d observations, 2-d actions, [128, 128] layer-norm critics, one
+torch thread), medians over repeats. Run it on an otherwise idle machine. Not a test.
+
+    python benchmarks/sac_update_cost.py --out benchmarks/results/sac_update_cost.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from drivelab.algos import sac
+from drivelab.training.buffers import ReplayBatch
+from drivelab.training.nets import OffPolicyAgent, make_target
+from drivelab.training.offpolicy import make_optimizers
+
+OBS_DIM, ACT_DIM, HIDDEN = 275, 2, [128, 128]
+
+
+def ms_per_update(batch_size: int, actor_every: int, updates: int) -> float:
+    """Milliseconds per ``sac.update`` (the actor and temperature every ``actor_every``-th)."""
+    hp = sac.Params(hidden=HIDDEN, critic_layer_norm=True, batch_size=batch_size, actor_every=actor_every,
+                    init_alpha=0.05, n_step=3)
+    obs_space = gym.spaces.Box(-1.0, 1.0, (OBS_DIM,), np.float32)
+    act_space = gym.spaces.Box(-1.0, 1.0, (ACT_DIM,), np.float32)
+    agent = OffPolicyAgent(obs_space, act_space, hp.hidden, hp.activation, stochastic=True, critics=2,
+                           critic_layer_norm=True)
+    target = make_target(agent)
+    log_alpha = torch.nn.Parameter(torch.tensor(hp.init_alpha).log())
+    opt = sac.Optimizers(**make_optimizers(agent, hp)._asdict(), alpha=torch.optim.Adam([log_alpha], lr=hp.alpha_lr))
+    b = batch_size
+    batch = ReplayBatch(obs=torch.randn(b, OBS_DIM), actions=torch.rand(b, ACT_DIM) * 2 - 1, rewards=torch.randn(b),
+                        next_obs=torch.randn(b, OBS_DIM), terminated=torch.zeros(b),
+                        discount=torch.full((b,), hp.gamma ** hp.n_step))
+
+    def run(n: int) -> None:
+        for i in range(n):
+            sac.update(agent, target, log_alpha, opt, batch, hp, -float(ACT_DIM), update_actor=i % actor_every == 0)
+
+    run(30)  # first calls allocate
+    started = time.perf_counter()
+    run(updates)
+    return (time.perf_counter() - started) / updates * 1e3
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--updates", type=int, default=300, help="updates per timing")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    arms = [(128, 1), (256, 1), (256, 2), (512, 1), (512, 2)]
+    timings: dict[str, list[float]] = {f"batch {b}, actor_every {a}": [] for b, a in arms}
+    for _ in range(args.repeats):  # arms interleaved, so drift of the machine hits them alike
+        for b, a in arms:
+            timings[f"batch {b}, actor_every {a}"].append(ms_per_update(b, a, args.updates))
+    result = {"benchmark": "sac-update-cost", "shapes": {"obs": OBS_DIM, "act": ACT_DIM, "hidden": HIDDEN,
+                                                         "critic_layer_norm": True, "torch_threads": 1},
+              "torch": torch.__version__, "ms_per_update_median": {k: round(statistics.median(v), 2) for k, v in timings.items()},
+              "ms_per_update": {k: [round(x, 2) for x in v] for k, v in timings.items()}}
+    text = json.dumps(result, indent=1)
+    print(text)
+    if args.out:
+        args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
