@@ -21,24 +21,25 @@ import numpy as np
 import torch
 
 from drivelab.algos import sac
+from drivelab.api import build_config
 from drivelab.training.buffers import ReplayBatch
-from drivelab.training.nets import OffPolicyAgent, make_target
-from drivelab.training.offpolicy import make_optimizers
+from drivelab.training.nets import make_target
 
 OBS_DIM, ACT_DIM, HIDDEN = 275, 2, [128, 128]
 
 
 def ms_per_update(batch_size: int, actor_every: int, updates: int) -> float:
     """Milliseconds per ``sac.update`` (the actor and temperature every ``actor_every``-th)."""
-    hp = sac.Params(hidden=HIDDEN, critic_layer_norm=True, batch_size=batch_size, actor_every=actor_every,
-                    init_alpha=0.05, n_step=3)
+    cfg = build_config({"algo": "sac", "env": {"id": "Pendulum-v1"},
+                        "sac": {"hidden": HIDDEN, "critic_layer_norm": True, "batch_size": batch_size,
+                                "actor_every": actor_every, "init_alpha": 0.05, "n_step": 3}})
+    hp: sac.Params = cfg.algo_params
     obs_space = gym.spaces.Box(-1.0, 1.0, (OBS_DIM,), np.float32)
     act_space = gym.spaces.Box(-1.0, 1.0, (ACT_DIM,), np.float32)
-    agent = OffPolicyAgent(obs_space, act_space, hp.hidden, hp.activation, stochastic=True, critics=2,
-                           critic_layer_norm=True)
+    agent = sac.build_policy(cfg, obs_space, act_space)
     target = make_target(agent)
     log_alpha = torch.nn.Parameter(torch.tensor(hp.init_alpha).log())
-    opt = sac.Optimizers(**make_optimizers(agent, hp)._asdict(), alpha=torch.optim.Adam([log_alpha], lr=hp.alpha_lr))
+    opt = sac.build_optimizers(agent, log_alpha, hp)
     b = batch_size
     batch = ReplayBatch(obs=torch.randn(b, OBS_DIM), actions=torch.rand(b, ACT_DIM) * 2 - 1, rewards=torch.randn(b),
                         next_obs=torch.randn(b, OBS_DIM), terminated=torch.zeros(b),

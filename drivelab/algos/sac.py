@@ -57,6 +57,11 @@ def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -
                           critic_layer_norm=hp.critic_layer_norm)
 
 
+def build_optimizers(agent: OffPolicyAgent, log_alpha: torch.Tensor, hp: Params) -> Optimizers:
+    """Adam for the critics (with the encoder) and the actor (:func:`make_optimizers`), and for log(alpha)."""
+    return Optimizers(**make_optimizers(agent, hp)._asdict(), alpha=torch.optim.Adam([log_alpha], lr=hp.alpha_lr))
+
+
 def critic_loss(q: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Sum over critics of the mean squared TD error: q (E, B), target (B,)."""
     return (q - target).pow(2).mean(dim=1).sum()
@@ -120,7 +125,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
     # Target networks: a Polyak-averaged copy of the agent (its encoder too, so y does not move
     # with the online critic's features). Only its encoder and critics are used.
     target = make_target(agent)
-    opt = Optimizers(**make_optimizers(agent, hp)._asdict(), alpha=torch.optim.Adam([log_alpha], lr=hp.alpha_lr))
+    opt = build_optimizers(agent, log_alpha, hp)
     if hp.compile:
         agent.compile_networks()
     resumed = run.start({"policy": agent, "target": target, "alpha": torch.nn.ParameterDict({"log_alpha": log_alpha})},
