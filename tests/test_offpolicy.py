@@ -139,6 +139,31 @@ def test_resume_continues_with_the_same_replay_buffer(tmp_path):
     assert second["replay/truncated"].sum() == 4 and second["replay/terminated"].sum() == 0  # 200-step episodes
 
 
+def test_sac_average_policy_is_what_checkpoints_hold_as_the_policy_and_it_resumes(tmp_path):
+    run_dir = tmp_path / "avg"
+    train(_pendulum(run_dir, "sac", 600, average_policy=0.05, actor_every=2), progress=False)
+    start = load_file(str(list_checkpoints(run_dir)[0] / "tensors.safetensors"))
+    at_600 = load_file(str(list_checkpoints(run_dir)[-1] / "tensors.safetensors"))
+    actor = [k for k in start if k.startswith("module/policy/actor.")]
+    assert actor and all(k.replace("/policy/", "/learner/") in at_600 for k in actor)
+    # the average starts as a copy of the agent, then trails it
+    assert all(torch.equal(start[k], start[k.replace("/policy/", "/learner/")]) for k in actor)
+    assert not all(torch.allclose(at_600[k], at_600[k.replace("/policy/", "/learner/")]) for k in actor)
+    assert not all(torch.equal(at_600[k], start[k]) for k in actor)
+    # evaluation plays the average: drivelab eval loads the checkpoint's "policy"
+    result, _, _ = evaluate_checkpoint(run_dir, episodes=1)
+    assert np.isfinite(result.summary()["return_mean"])
+    train(_pendulum(run_dir, "sac", 900, average_policy=0.05, actor_every=2), resume=True, progress=False)
+    at_900 = load_file(str(list_checkpoints(run_dir)[-1] / "tensors.safetensors"))
+    assert not all(torch.equal(at_900[k], at_600[k]) for k in actor)
+
+
+@pytest.mark.parametrize("field, value", [("average_policy", 1.0), ("average_policy", -0.1), ("actor_every", 0)])
+def test_sac_rejects_out_of_range_averaging_and_actor_delay(field, value, tmp_path):
+    with pytest.raises(DrivelabError, match=field):
+        build_config({"algo": "sac", "run_dir": str(tmp_path), "env": {"id": "Pendulum-v1"}, "sac": {field: value}})
+
+
 def test_sac_learns_from_images_with_a_cnn(tmp_path):
     cfg = build_config({"algo": "sac", "steps": 150, "seed": 0, "run_dir": str(tmp_path / "img"),
                         "env": {"id": "CarRacing-v3", "num_envs": 1},

@@ -8,7 +8,9 @@ Maximises return plus entropy, E[sum_t r_t + alpha * H(pi(.|s_t))], with
       y = r + gamma * (1 - terminated) * (min_e Q'_e(s', a') - alpha * log pi(a'|s')),  a' ~ pi(.|s');
 * the actor loss E[alpha * log pi(a|s) - min_e Q_e(s, a)] with a reparameterised a ~ pi(.|s);
 * alpha tuned so the policy's entropy tracks a target (-|A| by default):
-      L(alpha) = -E[log alpha * (log pi(a|s) + target_entropy)].
+      L(alpha) = -E[log alpha * (log pi(a|s) + target_entropy)];
+* optionally (``actor_every``) the actor and alpha on every N-th critic step only, and
+  (``average_policy``) an exponential average of the weights as the policy that is evaluated.
 
 Shared parts used here: :class:`drivelab.training.offpolicy.ReplayCollector` (env stepping into the
 replay buffer, update-to-data ratio), the networks in :mod:`drivelab.training.nets`, and
@@ -25,6 +27,7 @@ import torch
 
 from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
+from drivelab.errors import DrivelabError
 from drivelab.training.nets import OffPolicyAgent, frozen, make_target, polyak_update
 from drivelab.training.offpolicy import OffPolicyParams, PolicySampling, ReplayCollector, make_optimizers
 from drivelab.training.losses import gradient_step
@@ -43,6 +46,18 @@ class Params(OffPolicyParams):
     autotune: bool = True             # tune alpha toward target_entropy (else fixed at init_alpha)
     target_entropy: float | None = None   # None: -|A|
     actor_every: int = 1                  # actor and alpha update once every N critic updates
+    # > 0: evaluation, checkpoints and the exported policy use a running (exponential) average of
+    # the agent's weights, moved by this fraction toward them at every actor step; the env workers
+    # keep acting with the agent itself. Weight averaging steadies the policy that is evaluated
+    # (Nikishin et al. 2018 average uniformly over a window; this is the exponential form).
+    average_policy: float = 0.0
+
+    def validate(self) -> None:
+        super().validate()
+        if self.actor_every < 1:
+            raise DrivelabError(f"config field 'actor_every' must be >= 1, got {self.actor_every}")
+        if not 0.0 <= self.average_policy < 1.0:
+            raise DrivelabError(f"config field 'average_policy' must be in [0, 1), got {self.average_policy}")
 
 
 class Optimizers(NamedTuple):
@@ -125,11 +140,16 @@ def train(cfg: TrainConfig, run: Run) -> None:
     # Target networks: a Polyak-averaged copy of the agent (its encoder too, so y does not move
     # with the online critic's features). Only its encoder and critics are used.
     target = make_target(agent)
+    # With average_policy the checkpoints' "policy" (what evaluation, drivelab eval and export
+    # load) is the averaged copy and the agent that learns is saved as "learner".
+    averaged = make_target(agent) if hp.average_policy > 0 else None
     opt = build_optimizers(agent, log_alpha, hp)
     if hp.compile:
         agent.compile_networks()
-    resumed = run.start({"policy": agent, "target": target, "alpha": torch.nn.ParameterDict({"log_alpha": log_alpha})},
-                        opt._asdict(), policy=agent)
+    modules = {"policy": agent, "target": target, "alpha": torch.nn.ParameterDict({"log_alpha": log_alpha})}
+    if averaged is not None:
+        modules.update(policy=averaged, learner=agent)
+    resumed = run.start(modules, opt._asdict(), policy=modules["policy"])
     collector.start(resumed, exploration=PolicySampling(hp, collector.num_envs, collector.act_space.shape[0], cfg.seed))
     try:
         while not run.done:
@@ -139,9 +159,11 @@ def train(cfg: TrainConfig, run: Run) -> None:
             steps = collector.collect(agent)
             # 2. utd gradient steps per env step on uniform replay batches.
             for batch in collector.batches():
+                update_actor = (collector.updates - 1) % hp.actor_every == 0
                 with run.timing.update:
-                    run.record(update(agent, target, log_alpha, opt, batch, hp, target_entropy,
-                                      update_actor=(collector.updates - 1) % hp.actor_every == 0))
+                    run.record(update(agent, target, log_alpha, opt, batch, hp, target_entropy, update_actor))
+                    if averaged is not None and update_actor:
+                        polyak_update(averaged, agent, hp.average_policy)
             # 3. Log, evaluate and checkpoint (with the replay buffer) when due.
             run.end_iteration(steps, extra_state=collector.state)
     finally:
