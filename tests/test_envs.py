@@ -12,7 +12,7 @@ from drivelab.config import EnvConfig
 from drivelab.envs import make_env, make_vector_env, metadrive_ids
 from drivelab.envs.metadrive import assets_installed
 from drivelab.envs.registration import TASKS
-from drivelab.envs.wrappers import DiscreteActionGrid
+from drivelab.envs.wrappers import ActionRepeat, DiscreteActionGrid
 from drivelab.errors import DrivelabError
 
 
@@ -143,6 +143,39 @@ def test_action_grid_table_is_steering_then_throttle():
 class _BoxEnv(gym.Env):
     observation_space = gym.spaces.Box(-1, 1, (1,), np.float32)
     action_space = gym.spaces.Box(-1, 1, (2,), np.float32)
+
+
+class _Countdown(gym.Env):
+    """Reward t at step t; terminates at step `end`; logs the actions it receives."""
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)
+    action_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+
+    def __init__(self, end: int = 5):
+        self.end, self.t, self.actions = end, 0, []
+
+    def reset(self, *, seed=None, options=None):
+        self.t = 0
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        self.actions.append(float(action[0]))
+        return np.full(1, self.t, np.float32), float(self.t), self.t == self.end, False, {"t": self.t}
+
+
+def test_action_repeat_holds_the_action_sums_rewards_and_stops_at_the_episode_end():
+    inner = _Countdown(end=5)
+    env = ActionRepeat(inner, 2)
+    env.reset(seed=0)
+    obs, reward, terminated, truncated, info = env.step(np.array([0.5], np.float32))
+    assert inner.actions == [0.5, 0.5] and reward == 1.0 + 2.0 and obs[0] == 2.0 and info == {"t": 2}
+    assert not terminated
+    env.step(np.array([-0.5], np.float32))                                  # steps 3 and 4
+    obs, reward, terminated, truncated, info = env.step(np.array([0.25], np.float32))
+    assert terminated and reward == 5.0 and info == {"t": 5}                # the end at step 5 stops the repeat
+    assert inner.actions == [0.5, 0.5, -0.5, -0.5, 0.25]
+    with pytest.raises(DrivelabError, match="env.action_repeat"):
+        EnvConfig(id="CartPole-v1", action_repeat=0).validate()
 
 
 def test_full_throttle_straight_drives_forward_along_the_lane():

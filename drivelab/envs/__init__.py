@@ -24,7 +24,7 @@ from drivelab.envs.registration import metadrive_ids, needs_own_process, registe
 from drivelab.envs.filters import apply_filters
 from drivelab.envs.rewards import RewardShaping
 from drivelab.envs.supervised import SupervisedVectorEnv
-from drivelab.envs.wrappers import DifferentialDrive, DiscreteActionGrid, FixedThrottle, parse_grid
+from drivelab.envs.wrappers import ActionRepeat, DifferentialDrive, DiscreteActionGrid, FixedThrottle, parse_grid
 from drivelab.errors import DrivelabError, kill_point
 
 __all__ = ["EnvConfig", "make_env", "make_vector_env", "env_spaces", "DiscreteActionGrid", "FixedThrottle", "DifferentialDrive",
@@ -46,7 +46,8 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
              wrapper: Callable[[gym.Env], gym.Env] | None = None) -> gym.Env:
     """Build one environment from a validated :class:`~drivelab.config.EnvConfig`, then drivelab's
     wrappers in this order: reward shaping (``cfg.reward``), action adapter (``cfg.action_grid``
-    or ``cfg.fixed_throttle``), observation filters (``cfg.obs_filters``).
+    or ``cfg.fixed_throttle``), action repeat (``cfg.action_repeat``, over the shaped reward),
+    observation filters (``cfg.obs_filters``: they see the observations the agent decides on).
 
     ``cfg.kwargs`` go to ``gym.make`` (for MetaDrive: any MetaDrive config key, e.g.
     ``{"num_scenarios": 10, "traffic_density": 0.2}``). A task that shapes its reward itself
@@ -84,6 +85,8 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
         env = DiscreteActionGrid(env, steering_bins, throttle_bins, max_steering=cfg.max_steering)
     elif cfg.fixed_throttle is not None:
         env = FixedThrottle(env, cfg.fixed_throttle)
+    if cfg.action_repeat > 1:
+        env = ActionRepeat(env, cfg.action_repeat)
     if cfg.obs_filters:
         env = apply_filters(env, list(cfg.obs_filters))
     return wrapper(env) if wrapper is not None else env

@@ -39,6 +39,9 @@ class EnvConfig:
     max_steering: float = 0.6
     # Steering-only 1-D actions at this constant throttle (drivelab.envs.wrappers.FixedThrottle).
     fixed_throttle: float | None = None
+    # Hold each action for this many env steps, summing their rewards (wrappers.ActionRepeat):
+    # the agent decides every action_repeat steps; the env, its traffic and horizon are unchanged.
+    action_repeat: int = 1
     # Reward shaping: {term: {weight: w, ...params}} over cte, lane, native, progress
     # (drivelab.envs.rewards); replaces the env's reward.
     reward: dict[str, Any] | None = None
@@ -61,6 +64,8 @@ class EnvConfig:
         """Check every field once, before anything is built (the env factory trusts the result)."""
         if self.num_envs < 1:
             raise DrivelabError(f"config field '{where}.num_envs' must be >= 1, got {self.num_envs}")
+        if self.action_repeat < 1:
+            raise DrivelabError(f"config field '{where}.action_repeat' must be >= 1, got {self.action_repeat}")
         if self.step_timeout is not None and not self.step_timeout > 0:
             raise DrivelabError(f"config field '{where}.step_timeout' must be > 0 seconds, got {self.step_timeout}")
         if self.max_restarts < 0 or self.restart_window < 1:

@@ -1,4 +1,5 @@
-"""Action adapters for driving environments whose action is MetaDrive-style [steering, throttle]."""
+"""Action adapters for driving environments whose action is MetaDrive-style [steering, throttle],
+and an action repeat for any env."""
 
 from __future__ import annotations
 
@@ -79,6 +80,32 @@ class FixedThrottle(gym.ActionWrapper):
 
     def action(self, action) -> np.ndarray:
         return np.array([float(np.asarray(action).reshape(-1)[0]), self.throttle], np.float32)
+
+
+class ActionRepeat(gym.Wrapper):
+    """Each action is held for ``repeat`` env steps (frame skip; Mnih et al. 2015 hold Atari's
+    actions for 4 frames): the rewards of those steps are summed, the observation and info are the
+    last step's, and an episode that ends (terminated or truncated) inside the repeat ends there.
+
+    The env itself is unchanged (its traffic, physics and horizon still run at its own step), only
+    the agent decides less often: on MetaDrive, whose step is 0.1 s, ``repeat: 2`` decides every
+    0.2 s, and a learner that costs a fixed time per decision gets twice the driving per update.
+    """
+
+    def __init__(self, env: gym.Env, repeat: int):
+        super().__init__(env)
+        if repeat < 1:
+            raise DrivelabError(f"config field 'env.action_repeat' must be >= 1, got {repeat}")
+        self.repeat = int(repeat)
+
+    def step(self, action):
+        total = 0.0
+        for _ in range(self.repeat):
+            obs, reward, terminated, truncated, info = self.env.step(action)
+            total += float(reward)
+            if terminated or truncated:
+                break
+        return obs, total, terminated, truncated, info
 
 
 class CruiseControl(gym.Wrapper):
