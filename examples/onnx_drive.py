@@ -32,6 +32,7 @@ def main() -> None:
     if meta["env_side"]["obs_filters"] or meta["env_side"]["target_speed"]:
         raise SystemExit("this example drives MetaDrive's state observation with [steering, throttle] actions; "
                          f"the policy also needs {meta['env_side']}")
+    repeat = meta["env_side"].get("action_repeat", 1)   # the policy decides every `repeat` env steps
     session = onnxruntime.InferenceSession(str(Path(args.exported) / meta["file"]))
 
     # MetaDrive downloads a 3D asset pack when an engine starts; physics and state observations
@@ -45,11 +46,12 @@ def main() -> None:
     try:
         for k in range(args.episodes):
             obs, _ = env.reset(seed=args.start_seed + k)
-            total, done, info = 0.0, False, {}
+            total, done, info, t = 0.0, False, {}, 0
             while not done:
-                action = session.run(None, {"obs": obs[None].astype(np.float32)})[0][0]
+                if t % repeat == 0:
+                    action = session.run(None, {"obs": obs[None].astype(np.float32)})[0][0]
                 obs, reward, terminated, truncated, info = env.step(action)
-                total, done = total + reward, terminated or truncated
+                total, done, t = total + reward, terminated or truncated, t + 1
             print(f"scenario {args.start_seed + k}: return {total:7.1f}, route {info['route_completion']:.0%}, "
                   f"{'arrived' if info['arrive_dest'] else 'crashed' if info['crash'] else 'off road' if info['out_of_road'] else 'time out'}")
     finally:

@@ -81,6 +81,7 @@ def metadata(cfg: TrainConfig, step: int, obs_space: gym.Space, action_space: gy
         "env_side": {
             "obs_filters": list(cfg.env.obs_filters),   # applied to the simulator's observation first
             "target_speed": cfg.env.kwargs.get("target_speed"),  # a speed controller sets the throttle
+            "action_repeat": cfg.env.action_repeat,   # each action is held for this many env steps
             "env_kwargs": dict(cfg.env.kwargs),
         },
         "in_graph": {"observation_normalisation": bool(getattr(cfg.algo_params, "normalize_obs", False)),
