@@ -40,6 +40,29 @@ def test_video_has_the_frames_of_its_episodes_and_decodes(cartpole_run, run_cli,
     assert first[:20, :200].mean() < bare[:20, :200].mean() - 50
 
 
+@pytest.mark.parametrize("repeat", [1, 2])
+def test_video_of_an_action_repeat_env_keeps_real_time(tmp_path, repeat):
+    from gymnasium.vector import AutoresetMode
+
+    from drivelab.envs import EnvConfig, make_vector_env
+    from drivelab.training.video import Recorder
+
+    envs = make_vector_env(EnvConfig(id="CartPole-v1", num_envs=1, action_repeat=repeat),
+                           autoreset_mode=AutoresetMode.DISABLED, render_mode="rgb_array")
+    recorder = Recorder(tmp_path / "v.mp4", fps=10)
+    try:
+        _, info = envs.reset(seed=0)
+        recorder.start(envs, info, 0)
+        for _ in range(3):
+            _, reward, _, _, info = envs.step(np.zeros(1, np.int64))
+            recorder.step(envs, np.zeros(1), float(reward[0]), info, False)
+    finally:
+        recorder.close()
+        envs.close()
+    # one frame per decision, each held for `repeat` env steps: the recorder's 10 fps / repeat
+    assert imageio.get_reader(tmp_path / "v.mp4").get_meta_data()["fps"] == pytest.approx(10 / repeat)
+
+
 def test_training_keeps_the_best_checkpoint_and_films_it(cartpole_run):
     best = json.loads((cartpole_run / "checkpoints" / "best" / "eval.json").read_text())
     videos = sorted((cartpole_run / "videos").glob("step_*.mp4"))

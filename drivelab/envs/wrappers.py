@@ -97,6 +97,8 @@ class ActionRepeat(gym.Wrapper):
         if repeat < 1:
             raise DrivelabError(f"config field 'env.action_repeat' must be >= 1, got {repeat}")
         self.repeat = int(repeat)
+        # Videos see one frame per decision: their recorder slows its frame rate by this factor.
+        self.metadata = {**env.metadata, "action_repeat": self.repeat}
 
     def step(self, action):
         total = 0.0

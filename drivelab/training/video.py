@@ -63,7 +63,10 @@ class Recorder:
         if not self._recording():
             return
         if self.per_episode or self._writer is None:
-            self._open(self.path / f"episode_{episode:03d}.mp4" if self.per_episode else self.path)
+            # one frame per step of `envs`; an env that holds each action for N steps (env.action_repeat)
+            # shows every N-th frame, so the video plays at fps / N to keep real time
+            repeat = int(getattr(envs, "metadata", {}).get("action_repeat", 1))
+            self._open(self.path / f"episode_{episode:03d}.mp4" if self.per_episode else self.path, self.fps / repeat)
         self._frame(envs, info, None)
 
     def step(self, envs, action: np.ndarray, reward: float, info: dict, done: bool) -> None:
@@ -95,12 +98,12 @@ class Recorder:
         """The thumbnails side by side, (H, W * k, 3) uint8, or None."""
         return np.concatenate(self.thumbnails, axis=1) if self.thumbnails else None
 
-    def _open(self, path: Path) -> None:
+    def _open(self, path: Path, fps: float) -> None:
         self._close_writer()
         if path.suffix.lower() == ".gif":
-            self._writer = imageio.get_writer(path, mode="I", duration=1000 / self.fps, loop=0)
+            self._writer = imageio.get_writer(path, mode="I", duration=1000 / fps, loop=0)
         else:
-            self._writer = imageio.get_writer(path, fps=self.fps, codec="libx264", macro_block_size=2,
+            self._writer = imageio.get_writer(path, fps=fps, codec="libx264", macro_block_size=2,
                                               quality=7, ffmpeg_log_level="error")
         self.paths.append(path)
 
