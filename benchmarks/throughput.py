@@ -49,7 +49,9 @@ which is the speed such a run trains at in its steady state. A trained car also 
 differently from a random one, so each of those pairs gets a third measurement, ``acting``: the
 checkpoint's policy sampling actions in the same envs, stepped the same way (lockstep, or N
 groups for ``drivelab_groups``), without learning (``*_vs_acting``). ``--set FIELD=VALUE``
-changes the config of every drivelab contender, e.g. ``--set update_threads=2``.
+changes the config of every drivelab contender and the env of the ceilings, e.g. ``--set
+update_threads=2``. Steps are the trainer's env steps: with ``env.action_repeat: N`` (recorded
+per row) each is a decision held for N simulator steps, on both sides of every ratio.
 """
 
 from __future__ import annotations
@@ -208,8 +210,9 @@ def main() -> None:
                                                                          n, None, args.steps, checkpoint=checkpoint)
     results = []
     for n in args.num_envs:
-        env_cfg = build_config({**data, "env": {**data["env"], "num_envs": n, "step_groups": None}}).env
-        row: dict = {"num_envs": n, "pairs": {}}
+        # the ceilings step the env drivelab's contenders train on (--set env.* included)
+        env_cfg = build_config({**tuned, "env": {**tuned["env"], "num_envs": n, "step_groups": None}}).env
+        row: dict = {"num_envs": n, "action_repeat": env_cfg.action_repeat, "pairs": {}}
         for name, measure in contenders.items():
             if name in args.skip or (name == "drivelab_groups" and n == 1):
                 continue
