@@ -47,18 +47,18 @@ def solid_segments(world) -> list[np.ndarray]:
     return segments
 
 
-def route_lanes(env) -> list:
-    """The lanes of every road on the agent's navigation route."""
+def route_roads(env) -> list[tuple[str, str, list]]:
+    """Every road on the agent's navigation route: (start node, end node, its lanes)."""
     checkpoints = env.agent.navigation.checkpoints
     graph = env.current_map.road_network.graph
-    return [lane for start, end in zip(checkpoints[:-1], checkpoints[1:]) for lane in graph[start][end]]
+    return [(start, end, graph[start][end]) for start, end in zip(checkpoints[:-1], checkpoints[1:])]
 
 
 def lines_in_lanes(env, margin: float) -> list[dict]:
     """Solid lines inside a route lane, deeper than ``margin`` from its edges."""
     found = []
     segments = solid_segments(env.engine.physics_world.static_world)
-    for lane in route_lanes(env):
+    for lane in (lane for _, _, lanes in route_roads(env) for lane in lanes):
         for points in segments:
             coords = np.array([lane.local_coordinates(p) for p in points])
             inside = (coords[:, 0] > 0) & (coords[:, 0] < lane.length) & (np.abs(coords[:, 1]) < lane.width / 2 - margin)
@@ -70,13 +70,11 @@ def lines_in_lanes(env, margin: float) -> list[dict]:
 
 
 def roads_with_every_lane_cut(env, lines: list[dict]) -> list[list[str]]:
-    """Route roads on which every lane has a line that a centred car touches: no lane of the
-    road gets a car through without touching a solid line (it may still squeeze past off centre)."""
-    graph = env.current_map.road_network.graph
-    checkpoints = env.agent.navigation.checkpoints
-    cut = {(line["lane"][0], line["lane"][1], line["lane"][2]) for line in lines if line["touches_centred_car"]}
-    return [[start, end] for start, end in zip(checkpoints[:-1], checkpoints[1:])
-            if all((str(start), str(end), str(lane.index[2])) in cut for lane in graph[start][end])]
+    """Route roads on which every lane has a line that a centred car touches: a car centred in
+    any lane of the road touches a solid line (one off centre might squeeze past)."""
+    cut = {tuple(line["lane"]) for line in lines if line["touches_centred_car"]}
+    return [[start, end] for start, end, lanes in route_roads(env)
+            if all((str(start), str(end), str(lane.index[2])) in cut for lane in lanes)]
 
 
 def per_episode_success(table: dict | None, runs: Path | None) -> dict[str, np.ndarray]:
