@@ -10,7 +10,7 @@ from gymnasium.vector import AutoresetMode
 import drivelab  # noqa: F401  (registers the ids)
 from drivelab.config import EnvConfig
 from drivelab.envs import make_env, make_vector_env, metadrive_ids
-from drivelab.envs.metadrive import assets_installed
+from drivelab.envs.metadrive import assets_installed, held_in_simulator
 from drivelab.envs.registration import TASKS
 from drivelab.envs.wrappers import ActionRepeat, DiscreteActionGrid
 from drivelab.errors import DrivelabError
@@ -176,6 +176,42 @@ def test_action_repeat_holds_the_action_sums_rewards_and_stops_at_the_episode_en
     assert inner.actions == [0.5, 0.5, -0.5, -0.5, 0.25]
     with pytest.raises(DrivelabError, match="env.action_repeat"):
         EnvConfig(id="CartPole-v1", action_repeat=0).validate()
+
+
+def _drive_straight(cfg: EnvConfig, decisions: int) -> tuple[gym.Env, list[np.ndarray]]:
+    env = make_env(cfg)
+    try:
+        env.reset(seed=3)
+        positions = []
+        for _ in range(decisions):
+            env.step(np.array([0.0, 1.0], np.float32))
+            positions.append(np.array(env.unwrapped.metadrive.agent.position))
+        return env, positions
+    finally:
+        env.close()
+
+
+def test_simulator_repeat_holds_the_action_in_metadrive_and_evaluation_plays_the_published_env():
+    cfg = EnvConfig(id="MetaDrive-validation-v0", action_repeat=2, simulator_repeat=True,
+                    kwargs={"traffic_density": 0.0, "horizon": 41})
+    held, held_path = _drive_straight(cfg, 8)
+    config = held.unwrapped.metadrive.config
+    assert (config["decision_repeat"], config["horizon"]) == (10, 20)  # 0.2 s per env step, the same time limit
+    assert not isinstance(held, ActionRepeat)
+    played = cfg.played()
+    assert not played.simulator_repeat and cfg.on("MetaDrive-1000envs-v0").simulator_repeat is False
+    wrapped, wrapped_path = _drive_straight(played, 8)
+    assert isinstance(wrapped, ActionRepeat) and wrapped.unwrapped.metadrive.config["decision_repeat"] == 5
+    # Without traffic both run the same physics steps under the same throttle: the car is where
+    # the wrapper's car is after every decision, 0.2 s apart.
+    assert np.linalg.norm(held_path[-1] - held_path[0]) > 1.0
+    np.testing.assert_allclose(np.array(held_path), np.array(wrapped_path), atol=1e-3)
+    # MetaDrive's step and time limit as given in a nested config too; no limit stays none
+    assert held_in_simulator({"config": {"decision_repeat": 4, "horizon": 300}}, 3) == {
+        "config": {"decision_repeat": 4, "horizon": 300}, "decision_repeat": 12, "horizon": 100}
+    assert held_in_simulator({"horizon": None}, 2) == {"horizon": None, "decision_repeat": 10}
+    with pytest.raises(DrivelabError, match="env.simulator_repeat.*not a MetaDrive env"):
+        EnvConfig(id="CartPole-v1", action_repeat=2, simulator_repeat=True).validate()
 
 
 def test_full_throttle_straight_drives_forward_along_the_lane():

@@ -22,6 +22,7 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, Vecto
 from drivelab.envs.config import EnvConfig
 from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs, registered_id
 from drivelab.envs.filters import apply_filters
+from drivelab.envs.metadrive import held_in_simulator
 from drivelab.envs.rewards import RewardShaping
 from drivelab.envs.supervised import SupervisedVectorEnv
 from drivelab.envs.wrappers import ActionRepeat, DifferentialDrive, DiscreteActionGrid, FixedThrottle, parse_grid
@@ -46,7 +47,8 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
              wrapper: Callable[[gym.Env], gym.Env] | None = None) -> gym.Env:
     """Build one environment from a validated :class:`~drivelab.config.EnvConfig`, then drivelab's
     wrappers in this order: reward shaping (``cfg.reward``), action adapter (``cfg.action_grid``
-    or ``cfg.fixed_throttle``), action repeat (``cfg.action_repeat``, over the shaped reward),
+    or ``cfg.fixed_throttle``), action repeat (``cfg.action_repeat``, over the shaped reward; with
+    ``cfg.simulator_repeat``, MetaDrive holds the action itself: :func:`~drivelab.envs.metadrive.held_in_simulator`),
     observation filters (``cfg.obs_filters``: they see the observations the agent decides on).
 
     ``cfg.kwargs`` go to ``gym.make`` (for MetaDrive: any MetaDrive config key, e.g.
@@ -62,6 +64,8 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
         # workers. (SIGTERM stays fatal: the supervisor terminates hung workers with it.)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     kwargs = cfg.kwargs or {}
+    if cfg.simulator_repeat and cfg.action_repeat > 1:
+        kwargs = held_in_simulator(kwargs, cfg.action_repeat)
     if render_mode is not None:  # pygame-drawn frames (CartPole, MetaDrive's top-down) need no display
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
@@ -85,7 +89,7 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
         env = DiscreteActionGrid(env, steering_bins, throttle_bins, max_steering=cfg.max_steering)
     elif cfg.fixed_throttle is not None:
         env = FixedThrottle(env, cfg.fixed_throttle)
-    if cfg.action_repeat > 1:
+    if cfg.action_repeat > 1 and not cfg.simulator_repeat:
         env = ActionRepeat(env, cfg.action_repeat)
     if cfg.obs_filters:
         env = apply_filters(env, list(cfg.obs_filters))

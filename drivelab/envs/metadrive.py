@@ -45,6 +45,23 @@ from drivelab.errors import DrivelabError
 DEFAULTS: dict[str, Any] = {"use_render": False, "horizon": 1000, "log_level": logging.ERROR}
 
 
+# MetaDrive's own default: an env step is decision_repeat physics steps of 0.02 s (0.1 s).
+DECISION_REPEAT = 5
+
+
+def held_in_simulator(kwargs: dict[str, Any], repeat: int) -> dict[str, Any]:
+    """MetaDrive kwargs whose env step holds the action ``repeat`` times as long: ``repeat`` x
+    ``decision_repeat`` physics steps, and a horizon of ``horizon // repeat`` env steps (the same
+    time limit). Faster than repeating the step (the traffic decides, and the observation, reward
+    and crash / line checks are computed, once instead of ``repeat`` times), but not the same env:
+    the traffic decides every ``repeat`` x 0.1 s and per-step reward terms (MetaDrive's
+    ``speed_reward``, drivelab's ``idle``) count once per decision."""
+    given = {**DEFAULTS, "decision_repeat": DECISION_REPEAT, **(kwargs.get("config") or {}), **kwargs}
+    horizon = given["horizon"]
+    return {**kwargs, "decision_repeat": int(given["decision_repeat"]) * repeat,
+            "horizon": None if horizon is None else max(1, int(horizon) // repeat)}
+
+
 def asset_dir() -> str:
     from metadrive.engine.asset_loader import AssetLoader
 

@@ -78,7 +78,7 @@ def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None
     """
     ckpt = load_checkpoint(resolve_policy_path(path))
     cfg = checkpoint_config(ckpt)
-    env_cfg = cfg.env
+    env_cfg = cfg.env.played()
     if env_id is not None and env_id != env_cfg.id:
         env_cfg = env_cfg.on(env_id)
     env_cfg.kwargs.update(env_kwargs or {})
@@ -123,7 +123,7 @@ class TrainedPolicy:
 
     def __init__(self, deployed: DeployedPolicy, cfg: TrainConfig, checkpoint: Path):
         self.deployed, self.config, self.checkpoint = deployed.eval().requires_grad_(False), cfg, checkpoint
-        self.env_config = dataclasses.replace(cfg.env, action_grid=None, fixed_throttle=None)
+        self.env_config = dataclasses.replace(cfg.env.played(), action_grid=None, fixed_throttle=None)
         self.observation_space, self.action_space = env_spaces(cfg.env)[0], env_spaces(self.env_config)[1]
 
     @torch.no_grad()

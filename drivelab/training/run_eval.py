@@ -137,5 +137,5 @@ def eval_env_config(cfg: TrainConfig) -> EnvConfig:
     training env's wrappers and ``eval.kwargs`` instead of its kwargs (those that shape the
     observation stay: :meth:`EnvConfig.on`)."""
     if cfg.eval.env_id is None or cfg.eval.env_id == cfg.env.id:
-        return dataclasses.replace(cfg.env, kwargs={**cfg.env.kwargs, **cfg.eval.kwargs})
+        return dataclasses.replace(cfg.env.played(), kwargs={**cfg.env.kwargs, **cfg.eval.kwargs})
     return cfg.env.on(cfg.eval.env_id, cfg.eval.kwargs)
