@@ -57,9 +57,10 @@ def held_in_simulator(kwargs: dict[str, Any], repeat: int) -> dict[str, Any]:
     the traffic decides every ``repeat`` x 0.1 s and per-step reward terms (MetaDrive's
     ``speed_reward``, drivelab's ``idle``) count once per decision."""
     given = {**DEFAULTS, "decision_repeat": DECISION_REPEAT, **(kwargs.get("config") or {}), **kwargs}
-    horizon = given["horizon"]
-    return {**kwargs, "decision_repeat": int(given["decision_repeat"]) * repeat,
-            "horizon": None if horizon is None else max(1, int(horizon) // repeat)}
+    step, horizon = given["decision_repeat"], given["horizon"]
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in (step, horizon or 1)):
+        return dict(kwargs)  # not integers: left for MetaDriveGym's one-line error on the config
+    return {**kwargs, "decision_repeat": step * repeat, "horizon": None if horizon is None else max(1, horizon // repeat)}
 
 
 def asset_dir() -> str:
