@@ -1,11 +1,12 @@
-"""What one SAC update costs at the drive recipe's shapes, per batch size and ``actor_every``, as JSON.
+"""What one SAC update costs at the drive recipe's shapes, per batch size, ``actor_every`` and
+``bf16_updates`` (bfloat16 autocast, the output layers float32), as JSON.
 
 The learner's CPU per env step is (ms per update) x ``utd``; on two cores it is what keeps the
 simulators waiting (docs/results.md, "Where the time goes"). Timed on random tensors shaped as
 ``configs/drive.yaml``'s (275-d observations, 2-d actions, [128, 128] layer-norm critics, one
 torch thread), medians over repeats. Run it on an otherwise idle machine. Not a test.
 
-    python benchmarks/sac_update_cost.py --out benchmarks/results/sac_update_cost.json
+    python benchmarks/sac_update_cost.py --out benchmarks/results/sac_update_cost_bf16.json
 """
 
 from __future__ import annotations
@@ -24,15 +25,18 @@ from drivelab.algos import sac
 from drivelab.api import build_config
 from drivelab.training.buffers import ReplayBatch
 from drivelab.training.nets import make_target
+from drivelab.training.offpolicy import update_precision
 
 OBS_DIM, ACT_DIM, HIDDEN = 275, 2, [128, 128]
 
 
-def ms_per_update(batch_size: int, actor_every: int, updates: int) -> float:
-    """Milliseconds per ``sac.update`` (the actor and temperature every ``actor_every``-th)."""
+def ms_per_update(batch_size: int, actor_every: int, bf16: bool, updates: int) -> float:
+    """Milliseconds per ``sac.update`` (the actor and temperature every ``actor_every``-th), in
+    the context the trainer opens around it (``update_precision``)."""
     cfg = build_config({"algo": "sac", "env": {"id": "Pendulum-v1"},
                         "sac": {"hidden": HIDDEN, "critic_layer_norm": True, "batch_size": batch_size,
-                                "actor_every": actor_every, "init_alpha": 0.05, "n_step": 3}})
+                                "actor_every": actor_every, "init_alpha": 0.05, "n_step": 3,
+                                "bf16_updates": bf16}})
     hp: sac.Params = cfg.algo_params
     obs_space = gym.spaces.Box(-1.0, 1.0, (OBS_DIM,), np.float32)
     act_space = gym.spaces.Box(-1.0, 1.0, (ACT_DIM,), np.float32)
@@ -47,12 +51,19 @@ def ms_per_update(batch_size: int, actor_every: int, updates: int) -> float:
 
     def run(n: int) -> None:
         for i in range(n):
-            sac.update(agent, target, log_alpha, opt, batch, hp, -float(ACT_DIM), update_actor=i % actor_every == 0)
+            with update_precision(hp, torch.device("cpu")):
+                sac.update(agent, target, log_alpha, opt, batch, hp, -float(ACT_DIM), update_actor=i % actor_every == 0)
 
     run(30)  # first calls allocate
     started = time.perf_counter()
     run(updates)
     return (time.perf_counter() - started) / updates * 1e3
+
+
+def cpu_flag(flag: str) -> bool | None:
+    """Whether Linux lists ``flag`` among the CPU's features (None where /proc/cpuinfo is absent)."""
+    cpuinfo = Path("/proc/cpuinfo")
+    return flag in cpuinfo.read_text().split() if cpuinfo.is_file() else None
 
 
 def main() -> int:
@@ -63,13 +74,16 @@ def main() -> int:
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    arms = [(128, 1), (256, 1), (256, 2), (512, 1), (512, 2)]
-    timings: dict[str, list[float]] = {f"batch {b}, actor_every {a}": [] for b, a in arms}
+    arms = [(128, 1, False), (256, 1, False), (256, 2, False), (256, 2, True), (512, 1, False), (512, 2, False),
+            (512, 2, True)]
+    name = lambda b, a, bf16: f"batch {b}, actor_every {a}" + (", bf16" if bf16 else "")  # noqa: E731
+    timings: dict[str, list[float]] = {name(*arm): [] for arm in arms}
     for _ in range(args.repeats):  # arms interleaved, so drift of the machine hits them alike
-        for b, a in arms:
-            timings[f"batch {b}, actor_every {a}"].append(ms_per_update(b, a, args.updates))
+        for arm in arms:
+            timings[name(*arm)].append(ms_per_update(*arm, args.updates))
     result = {"benchmark": "sac-update-cost", "shapes": {"obs": OBS_DIM, "act": ACT_DIM, "hidden": HIDDEN,
                                                          "critic_layer_norm": True, "torch_threads": 1},
+              "cpu_has_avx512_bf16": cpu_flag("avx512_bf16"),
               "torch": torch.__version__, "ms_per_update_median": {k: round(statistics.median(v), 2) for k, v in timings.items()},
               "ms_per_update": {k: [round(x, 2) for x in v] for k, v in timings.items()}}
     text = json.dumps(result, indent=1)

@@ -161,6 +161,16 @@ def test_sac_average_policy_is_what_checkpoints_hold_as_the_policy_and_it_resume
     assert not all(torch.equal(at_900[k], at_600[k]) for k in actor)
 
 
+def test_sac_trains_with_bf16_updates_and_saves_float32_weights(tmp_path):
+    run_dir = tmp_path / "bf16"
+    train(_pendulum(run_dir, "sac", 600, bf16_updates=True), progress=False)
+    start = load_file(str(list_checkpoints(run_dir)[0] / "tensors.safetensors"))
+    end = load_file(str(list_checkpoints(run_dir)[-1] / "tensors.safetensors"))
+    weights = [k for k in end if k.startswith(("module/policy/actor.", "module/policy/critic."))]
+    assert weights and all(end[k].dtype == torch.float32 and torch.isfinite(end[k]).all() for k in weights)
+    assert not all(torch.equal(end[k], start[k]) for k in weights)
+
+
 @pytest.mark.parametrize("field, value", [("average_policy", 1.0), ("average_policy", -0.1), ("actor_every", 0)])
 def test_sac_rejects_out_of_range_averaging_and_actor_delay(field, value, tmp_path):
     with pytest.raises(DrivelabError, match=field):

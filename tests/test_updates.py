@@ -14,9 +14,10 @@ import torch
 from torch.distributions import Categorical
 
 from drivelab.algos import a2c, ddpg, grpo, ppo, reinforce, sac, td3
+from drivelab.errors import DrivelabError
 from drivelab.training.buffers import ReplayBatch
 from drivelab.training.nets import ActorCritic, OffPolicyAgent, Policy, limit_log_std, make_target
-from drivelab.training.offpolicy import Optimizers
+from drivelab.training.offpolicy import Optimizers, update_precision
 from drivelab.training.rollout import RolloutBatch
 
 OBS = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
@@ -360,3 +361,55 @@ def test_log_std_bound_falls_linearly_and_projects_the_parameter():
     limit_log_std(free, ppo.Params(), step=1000, total=1000)
     torch.testing.assert_close(free.log_std.detach(), torch.full((2,), 0.3))
     assert limit_log_std(Policy(OBS, DISCRETE, (8,)), hp, 0, 1000) == {}
+
+
+@pytest.mark.parametrize("algo", ["td3", "sac"])
+def test_bf16_updates_keep_the_output_layers_in_float32_and_follow_the_float32_update(algo):
+    # bf16_updates runs the update under bfloat16 autocast (offpolicy.update_precision); the
+    # output layers stay float32 (nets.in_float32), so Q near 300 keeps its sub-unit differences.
+    agent, target = _agent_and_target(stochastic=algo == "sac", critics=2)
+    with torch.no_grad():
+        agent.critic.net[-1].bias.add_(300.0)
+        target.critic.net[-1].bias.add_(300.0)
+    batch = _replay_batch()
+    with torch.no_grad():
+        q32 = agent.critic(batch.obs, batch.actions)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            q16 = agent.critic(batch.obs, batch.actions)
+            hidden = agent.critic.net[:-1](torch.cat([batch.obs, batch.actions], -1).unsqueeze(0))
+    assert hidden.dtype == torch.bfloat16 and q16.dtype == torch.float32
+    assert (q16 - q32).abs().max() < 0.05        # bfloat16 itself spaces values near 300 by 2
+    assert (q32.bfloat16().float() - q32).abs().max() > 0.1
+
+    results = []
+    for bf16 in (False, True):
+        a, t = copy.deepcopy(agent), copy.deepcopy(target)
+        torch.manual_seed(11)
+        with _precision(bf16):
+            if algo == "td3":
+                out = td3.update(a, t, _sgd(a), batch, td3.Params(gamma=0.9), update_actor=True)
+            else:
+                log_alpha = torch.nn.Parameter(torch.tensor(0.2).log())
+                opt = sac.Optimizers(*_sgd(a), alpha=torch.optim.SGD([log_alpha], lr=0.5))
+                out = sac.update(a, t, log_alpha, opt, batch, sac.Params(gamma=0.9), target_entropy=-2.0)
+        assert all(p.dtype == torch.float32 and torch.isfinite(p).all() for p in a.parameters())
+        results.append((out, a))
+    (out32, a32), (out16, a16) = results
+    for key in ("loss/critic", "loss/actor"):
+        assert out16[key].dtype == torch.float32
+        assert out16[key].item() == pytest.approx(out32[key].item(), rel=0.05, abs=0.05)
+    for (name, p32), p16 in zip(a32.named_parameters(), a16.parameters()):
+        torch.testing.assert_close(p16, p32, atol=0.02, rtol=0.02, msg=name)
+
+
+def _precision(bf16):
+    """The context the trainers open around an update (offpolicy.update_precision)."""
+    return update_precision(ddpg.Params(bf16_updates=bf16), torch.device("cpu"))
+
+
+def test_bf16_updates_turn_autocast_on_only_when_asked_and_refuse_crossq():
+    for bf16 in (False, True):
+        with _precision(bf16):
+            assert torch.is_autocast_enabled("cpu") == bf16
+    with pytest.raises(DrivelabError, match="td3.bf16_updates"):
+        td3.Params(crossq=True, bf16_updates=True).validate()

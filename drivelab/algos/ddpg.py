@@ -20,7 +20,7 @@ from drivelab.config import TrainConfig
 from drivelab.training.losses import deterministic_actor_loss, gradient_step, saturated_share
 from drivelab.training.nets import OffPolicyAgent, frozen, make_target, polyak_update
 from drivelab.training.offpolicy import (NoisyExploration, NoisyExplorationParams, Optimizers, ReplayCollector,
-                                        make_optimizers)
+                                        make_optimizers, update_precision)
 from drivelab.training.run import Run
 
 
@@ -86,7 +86,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
             steps = collector.collect(agent)
             # 2. utd gradient steps per env step stored.
             for batch in collector.batches():
-                with run.timing.update:
+                with run.timing.update, update_precision(hp, run.device):
                     run.record(update(agent, target, opt, batch, hp))
             run.end_iteration(steps, extra_state=collector.state)
     finally:

@@ -29,7 +29,8 @@ from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
 from drivelab.training.nets import OffPolicyAgent, frozen, make_target, polyak_update
-from drivelab.training.offpolicy import OffPolicyParams, PolicySampling, ReplayCollector, make_optimizers
+from drivelab.training.offpolicy import (OffPolicyParams, PolicySampling, ReplayCollector, make_optimizers,
+                                        update_precision)
 from drivelab.training.losses import gradient_step
 from drivelab.training.run import Run
 
@@ -160,7 +161,7 @@ def train(cfg: TrainConfig, run: Run) -> None:
             # 2. utd gradient steps per env step on uniform replay batches.
             for batch in collector.batches():
                 update_actor = (collector.updates - 1) % hp.actor_every == 0
-                with run.timing.update:
+                with run.timing.update, update_precision(hp, run.device):
                     run.record(update(agent, target, log_alpha, opt, batch, hp, target_entropy, update_actor))
                     if averaged is not None and update_actor:
                         polyak_update(averaged, agent, hp.average_policy)

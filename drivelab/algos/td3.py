@@ -33,7 +33,7 @@ from drivelab.errors import DrivelabError
 from drivelab.training.losses import deterministic_actor_loss, gradient_step, saturated_share
 from drivelab.training.nets import OffPolicyAgent, frozen, make_target, polyak_update
 from drivelab.training.offpolicy import (NoisyExploration, NoisyExplorationParams, Optimizers, ReplayCollector,
-                                        make_optimizers)
+                                        make_optimizers, update_precision)
 from drivelab.training.run import Run
 
 
@@ -48,6 +48,9 @@ class Params(NoisyExplorationParams):
         super().validate()
         if self.policy_delay < 1:
             raise DrivelabError(f"config field 'td3.policy_delay' must be >= 1, got {self.policy_delay}")
+        if self.crossq and self.bf16_updates:
+            raise DrivelabError("config fields 'td3.crossq' and 'td3.bf16_updates' exclude each other: "
+                                "batch norm's statistics need float32")
         if self.crossq and self.critic_layer_norm:
             raise DrivelabError("config fields 'td3.crossq' and 'td3.critic_layer_norm' exclude each other: "
                                 "CrossQ normalises the critics with batch norm")
@@ -145,8 +148,9 @@ def train(cfg: TrainConfig, run: Run) -> None:
             steps = collector.collect(agent)
             # 2. Critic steps at the update-to-data ratio; the actor every policy_delay-th.
             for batch in collector.batches():
-                with run.timing.update:
-                    run.record(update(agent, target, opt, batch, hp, update_actor=collector.updates % hp.policy_delay == 0))
+                with run.timing.update, update_precision(hp, run.device):
+                    update_actor = collector.updates % hp.policy_delay == 0
+                    run.record(update(agent, target, opt, batch, hp, update_actor=update_actor))
             # 3. Log, evaluate and checkpoint (with the replay buffer) when due.
             run.end_iteration(steps, extra_state=collector.state)
     finally:

@@ -272,6 +272,19 @@ class ActorCritic(nn.Module):
 # representation the critic relies on.
 
 
+def in_float32(layer: nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """layer(x) computed in float32, also inside a bfloat16 autocast region (``bf16_updates``).
+
+    bfloat16 keeps 8 bits of mantissa: a Q-value near 300 would be rounded to steps of 2, larger
+    than a step's reward, so the output layers (Q, the actor's mean and log sigma) stay float32
+    while the hidden layers, where the time goes, run in bfloat16. Outside autocast (acting,
+    evaluation) it is layer(x), without the context's cost."""
+    if not torch.is_autocast_enabled(x.device.type):
+        return layer(x)
+    with torch.autocast(x.device.type, enabled=False):
+        return layer(x.float())
+
+
 class EnsembleLinear(nn.Module):
     """E independent linear layers applied in one batched matmul: (E, B, in) -> (E, B, out).
 
@@ -360,7 +373,8 @@ class Critics(nn.Module):
     def forward(self, features: torch.Tensor, actions: torch.Tensor, members: int | None = None) -> torch.Tensor:
         """Q_e(s, a) for e < ``members`` (all E by default): (members, B). TD3's actor step needs Q_1 only."""
         x = torch.cat([features, actions], dim=-1)
-        return self.net(x.unsqueeze(0).expand(members or self.ensemble, -1, -1)).squeeze(-1)
+        hidden = self.net[:-1](x.unsqueeze(0).expand(members or self.ensemble, -1, -1))
+        return in_float32(self.net[-1], hidden).squeeze(-1)
 
 
 class DeterministicActor(nn.Module):
@@ -372,10 +386,10 @@ class DeterministicActor(nn.Module):
 
     def pre_tanh(self, features: torch.Tensor) -> torch.Tensor:
         """u(s), (B, A): the output before the tanh (for a penalty that keeps it unsaturated)."""
-        return self.net[:-1](features)
+        return in_float32(self.net[1], self.net[0](features))
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        return self.net(features)
+        return torch.tanh(self.pre_tanh(features))
 
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
@@ -397,9 +411,9 @@ class SquashedGaussianActor(nn.Module):
     def forward(self, features: torch.Tensor, deterministic: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Returns (action (B, A) in [-1, 1], log pi(action|s) (B,))."""
         h = self.trunk(features)
-        mean = self.mean(h)
+        mean = in_float32(self.mean, h)
         # Soft clamp of log sigma into [LOG_STD_MIN, LOG_STD_MAX] (keeps gradients everywhere).
-        log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(self.log_std(h)) + 1)
+        log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(in_float32(self.log_std, h)) + 1)
         u = mean if deterministic else mean + log_std.exp() * torch.randn_like(mean)  # reparameterised
         return torch.tanh(u), squashed_gaussian_log_prob(u, mean, log_std)
 

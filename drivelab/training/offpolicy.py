@@ -47,6 +47,9 @@ class OffPolicyParams:
     activation: str = "relu"          # tanh | relu | elu | silu
     critic_layer_norm: bool = False   # LayerNorm in the critics' hidden layers (nets.Critics)
     compile: bool = False             # torch.compile the critic and actor forward passes
+    # The learner's updates under bfloat16 autocast (update_precision), the output layers kept
+    # float32 (nets.in_float32): ~1.5x faster updates where the CPU has AVX512-BF16 or AMX, and on GPUs.
+    bf16_updates: bool = False
     # The env workers act with a copy of the actor and keep stepping while the learner updates
     # (subprocess envs; see ReplayCollector): faster, with a policy lag of one chunk.
     act_in_workers: bool = False
@@ -67,6 +70,11 @@ class OffPolicyParams:
         """Env steps of one iteration (one step of every env; the workers' last chunks are cut
         to end there): ``steps`` is rounded up to a multiple of it."""
         return num_envs
+
+
+def update_precision(hp: OffPolicyParams, device: torch.device) -> torch.autocast:
+    """The context of the learner's updates: bfloat16 autocast with ``hp.bf16_updates``, else a no-op."""
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=hp.bf16_updates)
 
 
 @dataclass
