@@ -279,9 +279,10 @@ def in_float32(layer: nn.Module, x: torch.Tensor) -> torch.Tensor:
     than a step's reward, so the output layers (Q, the actor's mean and log sigma) stay float32
     while the hidden layers, where the time goes, run in bfloat16. Outside autocast (acting,
     evaluation) it is layer(x), without the context's cost."""
-    if not torch.is_autocast_enabled(x.device.type):
+    device = x.device.type
+    if not (torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device)):
         return layer(x)
-    with torch.autocast(x.device.type, enabled=False):
+    with torch.autocast(device, enabled=False):
         return layer(x.float())
 
 

@@ -8,6 +8,7 @@ them onto the env's Box bounds.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 from collections import deque
@@ -72,9 +73,11 @@ class OffPolicyParams:
         return num_envs
 
 
-def update_precision(hp: OffPolicyParams, device: torch.device) -> torch.autocast:
+def update_precision(hp: OffPolicyParams, device: torch.device) -> contextlib.AbstractContextManager:
     """The context of the learner's updates: bfloat16 autocast with ``hp.bf16_updates``, else a no-op."""
-    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=hp.bf16_updates)
+    if not hp.bf16_updates:
+        return contextlib.nullcontext()
+    return torch.autocast(device.type, dtype=torch.bfloat16)
 
 
 @dataclass
