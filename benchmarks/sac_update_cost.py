@@ -60,6 +60,11 @@ def ms_per_update(batch_size: int, actor_every: int, bf16: bool, updates: int) -
     return (time.perf_counter() - started) / updates * 1e3
 
 
+def arm_name(batch_size: int, actor_every: int, bf16: bool) -> str:
+    """The JSON key of one arm, e.g. "batch 256, actor_every 2, bf16"."""
+    return f"batch {batch_size}, actor_every {actor_every}" + (", bf16" if bf16 else "")
+
+
 def cpu_flag(flag: str) -> bool | None:
     """Whether Linux lists ``flag`` among the CPU's features (None where /proc/cpuinfo is absent)."""
     cpuinfo = Path("/proc/cpuinfo")
@@ -76,11 +81,10 @@ def main() -> int:
     torch.manual_seed(0)
     arms = [(128, 1, False), (256, 1, False), (256, 2, False), (256, 2, True), (512, 1, False), (512, 2, False),
             (512, 2, True)]
-    name = lambda b, a, bf16: f"batch {b}, actor_every {a}" + (", bf16" if bf16 else "")  # noqa: E731
-    timings: dict[str, list[float]] = {name(*arm): [] for arm in arms}
+    timings: dict[str, list[float]] = {arm_name(*arm): [] for arm in arms}
     for _ in range(args.repeats):  # arms interleaved, so drift of the machine hits them alike
         for arm in arms:
-            timings[name(*arm)].append(ms_per_update(*arm, args.updates))
+            timings[arm_name(*arm)].append(ms_per_update(*arm, args.updates))
     result = {"benchmark": "sac-update-cost", "shapes": {"obs": OBS_DIM, "act": ACT_DIM, "hidden": HIDDEN,
                                                          "critic_layer_norm": True, "torch_threads": 1},
               "cpu_has_avx512_bf16": cpu_flag("avx512_bf16"),
