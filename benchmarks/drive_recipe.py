@@ -35,6 +35,7 @@ from drivelab.api import baseline_env, build_config, evaluate_baseline, evaluate
 from drivelab.config import merge_overrides, parse_value, read_yaml
 from drivelab.training.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
 from drivelab.training.plots import mean_and_ci95, read_metrics
+from drivelab.training.timing import cpu_model
 
 HELDOUT_ENV, EPISODES = "MetaDrive-validation-v0", 200
 METRICS = ("success_rate", "crash_rate", "out_of_road_rate", "route_completion")
@@ -42,7 +43,8 @@ TIMEOUT = "timeout_rate"  # recorded since 2026-11-27: seeds cached before it ha
 
 
 def train_seed(config: str, seed: int, run_dir: Path, overrides: dict | None = None) -> dict:
-    """Train (or finish) one seed; its wall clock and steps are kept in RUN/training.json."""
+    """Train (or finish) one seed; its wall clock, steps and CPU are kept in RUN/training.json (30
+    minutes hold ~3x fewer steps on a CPU ~3x slower: docs/results.md, "What these numbers promise")."""
     record = run_dir / "training.json"
     if record.is_file():
         return json.loads(record.read_text())
@@ -50,7 +52,7 @@ def train_seed(config: str, seed: int, run_dir: Path, overrides: dict | None = N
     started = time.perf_counter()
     train(cfg, resume=bool(list_checkpoints(run_dir)))
     result = {"minutes": round((time.perf_counter() - started) / 60, 2),
-              "steps": checkpoint_step(resolve_checkpoint(run_dir))}
+              "steps": checkpoint_step(resolve_checkpoint(run_dir)), "cpu": cpu_model()}
     record.write_text(json.dumps(result) + "\n")
     return result
 

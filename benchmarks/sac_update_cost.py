@@ -7,6 +7,10 @@ simulators waiting (docs/results.md, "Where the time goes"). Timed on random ten
 torch thread), medians over repeats. Run it on an otherwise idle machine. Not a test.
 
     python benchmarks/sac_update_cost.py --out benchmarks/results/sac_update_cost_bf16.json
+
+The numbers depend on the CPU, which the JSON records (``machine``): bfloat16 pays only where the
+CPU computes it (``sac_update_cost_bf16.json``, AVX512-BF16); on an AVX2-only CPU it is several
+times slower than float32 (``sac_update_cost_avx2.json``).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from drivelab.api import build_config
 from drivelab.training.buffers import ReplayBatch
 from drivelab.training.nets import make_target
 from drivelab.training.offpolicy import update_precision
+from drivelab.training.timing import machine
 
 OBS_DIM, ACT_DIM, HIDDEN = 275, 2, [128, 128]
 
@@ -65,12 +70,6 @@ def arm_name(batch_size: int, actor_every: int, bf16: bool) -> str:
     return f"batch {batch_size}, actor_every {actor_every}" + (", bf16" if bf16 else "")
 
 
-def cpu_flag(flag: str) -> bool | None:
-    """Whether Linux lists ``flag`` among the CPU's features (None where /proc/cpuinfo is absent)."""
-    cpuinfo = Path("/proc/cpuinfo")
-    return flag in cpuinfo.read_text().split() if cpuinfo.is_file() else None
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--updates", type=int, default=300, help="updates per timing")
@@ -87,8 +86,7 @@ def main() -> int:
             timings[arm_name(*arm)].append(ms_per_update(*arm, args.updates))
     result = {"benchmark": "sac-update-cost", "shapes": {"obs": OBS_DIM, "act": ACT_DIM, "hidden": HIDDEN,
                                                          "critic_layer_norm": True, "torch_threads": 1},
-              "cpu_has_avx512_bf16": cpu_flag("avx512_bf16"),
-              "torch": torch.__version__, "ms_per_update_median": {k: round(statistics.median(v), 2) for k, v in timings.items()},
+              "machine": machine(), "ms_per_update_median": {k: round(statistics.median(v), 2) for k, v in timings.items()},
               "ms_per_update": {k: [round(x, 2) for x in v] for k, v in timings.items()}}
     text = json.dumps(result, indent=1)
     print(text)

@@ -2,6 +2,9 @@
 PyTorch's ``meta`` device, where any tensor created on the CPU beside them (a stats vector, an
 action scale, a constant) fails with "tensors on different devices", as it would on CUDA."""
 
+import platform
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -14,6 +17,7 @@ from drivelab.training.buffers import ReplayBatch
 from drivelab.training.nets import ActorCritic, OffPolicyAgent, make_target
 from drivelab.training.offpolicy import make_optimizers
 from drivelab.training.rollout import RolloutBatch
+from drivelab.training.timing import machine, native_bf16
 
 META = torch.device("meta")
 OBS, ACT, B = gym.spaces.Box(-1, 1, (6,)), gym.spaces.Box(-2, 2, (2,)), 16
@@ -100,3 +104,15 @@ def test_a_checkpoint_from_a_gpu_run_loads_evaluates_exports_and_resumes_on_the_
         assert err.count("\n") == 1 and "--device cpu" in err
     assert cli("train", "--resume", str(run), "--steps", "2048", "--device", "cpu", "--no-progress") == 0
     assert checkpoint_step(resolve_checkpoint(run)) == 2048
+
+
+def test_native_bf16_follows_the_cpu_flags_and_is_unknown_elsewhere():
+    # bf16_updates warns where native_bf16 is False (Run): on x86 it must mean what Linux's CPU
+    # flags say, AVX512-BF16 or AMX tiles; torch has no answer for the meta device.
+    assert native_bf16(META) is None
+    cpuinfo = Path("/proc/cpuinfo")
+    if platform.machine() not in ("x86_64", "AMD64") or not cpuinfo.is_file():
+        pytest.skip("CPU flags are read from Linux's /proc/cpuinfo on x86")
+    flags = set(cpuinfo.read_text().split())
+    assert native_bf16(torch.device("cpu")) == bool(flags & {"avx512_bf16", "amx_tile"})
+    assert machine()["bf16_in_hardware"] == native_bf16(torch.device("cpu")) and machine()["cpu"]

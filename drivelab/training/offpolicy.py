@@ -49,7 +49,8 @@ class OffPolicyParams:
     critic_layer_norm: bool = False   # LayerNorm in the critics' hidden layers (nets.Critics)
     compile: bool = False             # torch.compile the critic and actor forward passes
     # The learner's updates under bfloat16 autocast (update_precision), the output layers kept
-    # float32 (nets.in_float32): ~1.5x faster updates where the CPU has AVX512-BF16 or AMX, and on GPUs.
+    # float32 (nets.in_float32): ~1.5x faster updates where the CPU has AVX512-BF16 or AMX, and on
+    # GPUs; elsewhere torch emulates bfloat16 and the updates run slower (the run warns: Run).
     bf16_updates: bool = False
     # The env workers act with a copy of the actor and keep stepping while the learner updates
     # (subprocess envs; see ReplayCollector): faster, with a policy lag of one chunk.

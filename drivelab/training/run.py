@@ -59,7 +59,7 @@ from drivelab.training.run_checkpoints import ExtraState, RunCheckpoints
 from drivelab.training.run_dir import open_run_dir, seed_everything
 from drivelab.training.run_eval import RunEvaluation
 from drivelab.training.run_metrics import RunMetrics, check_finite
-from drivelab.training.timing import Timing
+from drivelab.training.timing import Timing, native_bf16
 
 
 class RunEvent(NamedTuple):
@@ -75,6 +75,15 @@ class RunEvent(NamedTuple):
 Callback = Callable[[RunEvent], "bool | None"]
 
 
+def _warn_emulated_bf16(cfg: TrainConfig, device: torch.device) -> None:
+    """``bf16_updates`` where the hardware has no bfloat16 arithmetic makes the updates slower, not
+    faster (7x on an AVX2-only CPU: sac_update_cost_avx2.json): one line on stderr, the run goes on as configured."""
+    if getattr(cfg.algo_params, "bf16_updates", False) and native_bf16(device) is False:
+        print(f"drivelab: warning: {cfg.algo}.bf16_updates is on, but this machine's {device.type} computes "
+              f"bfloat16 only by emulation (x86 CPUs need AVX512-BF16 or AMX, GPUs compute capability 8.0): "
+              f"its updates run several times slower than float32 (--{cfg.algo}.bf16_updates false)", file=sys.stderr)
+
+
 class Run:
     """A training run's state and services (see the module docstring for the loop they serve)."""
 
@@ -87,6 +96,7 @@ class Run:
         self.dir = Path(cfg.run_dir)
         self._lock = open_run_dir(cfg)
         self.device = torch.device(cfg.device)
+        _warn_emulated_bf16(cfg, self.device)
         self.rng = seed_everything(cfg)
         self.step, self.iteration, best = 0, 0, None
         self.episodes = EpisodeTracker(cfg.env.num_envs, cfg.stats_window)

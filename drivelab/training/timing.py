@@ -1,4 +1,5 @@
-"""Where a run's wall time goes: stepping envs, gradient updates, and the rest (``perf/*``).
+"""Where a run's wall time goes: stepping envs, gradient updates, and the rest (``perf/*``),
+and what the machine computes fast (:func:`machine`, :func:`native_bf16`).
 
 A loop wraps its env steps in ``with run.timing.env:`` and its updates in
 ``with run.timing.update:``; :meth:`Timing.fractions` turns the sums into shares at each log.
@@ -7,7 +8,10 @@ The sections are reused, so timing allocates nothing per step.
 
 from __future__ import annotations
 
+import os
+import platform
 import time
+from pathlib import Path
 
 import torch
 
@@ -66,3 +70,34 @@ class Timing:
         self._since = now
         return {"perf/env_fraction": env, "perf/update_fraction": update,
                 "perf/other_fraction": max(0.0, 1.0 - env - update)}
+
+
+def cpu_model() -> str:
+    """The CPU's model name as Linux reports it (else what ``platform`` knows)."""
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.partition(":")[2].strip()
+    return platform.processor() or platform.machine()
+
+
+def native_bf16(device: torch.device) -> bool | None:
+    """Whether ``device`` computes bfloat16 in hardware: on x86 CPUs AVX512-BF16 or AMX, on CUDA
+    what torch reports; None where torch cannot tell (other CPUs). Without it torch emulates
+    bfloat16 through float32, and a bfloat16 update is slower, not faster (7x slower than float32
+    on an AVX2-only CPU: benchmarks/results/sac_update_cost_avx2.json)."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    if device.type != "cpu" or platform.machine().lower() not in ("x86_64", "amd64"):
+        return None
+    probes = [getattr(torch.cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]
+    if not any(probes):
+        return None
+    return any(probe() for probe in probes if probe is not None)
+
+
+def machine() -> dict:
+    """What a benchmark's JSON records of the machine it ran on: its numbers depend on it."""
+    return {"cpu": cpu_model(), "cpu_cores": os.cpu_count(), "bf16_in_hardware": native_bf16(torch.device("cpu")),
+            "torch": torch.__version__}
