@@ -83,12 +83,13 @@ def cpu_model() -> str:
 
 
 def native_bf16(device: torch.device) -> bool | None:
-    """Whether ``device`` computes bfloat16 in hardware: on x86 CPUs AVX512-BF16 or AMX, on CUDA
-    what torch reports; None where torch cannot tell (other CPUs). Without it torch emulates
-    bfloat16 through float32, and a bfloat16 update is slower, not faster (7x slower than float32
-    on an AVX2-only CPU: benchmarks/results/sac_update_cost_avx2.json)."""
+    """Whether ``device`` computes bfloat16 in hardware: on x86 CPUs AVX512-BF16 or AMX, on NVIDIA
+    GPUs compute capability 8.0 (Ampere) or newer, on ROCm always; None where torch cannot tell
+    (other CPUs). Without it torch emulates bfloat16 through float32, and a bfloat16 update is
+    slower, not faster (7x slower than float32 on an AVX2-only CPU:
+    benchmarks/results/sac_update_cost_avx2.json)."""
     if device.type == "cuda":
-        return torch.cuda.is_bf16_supported()
+        return torch.version.hip is not None or torch.cuda.get_device_capability(device)[0] >= 8
     if device.type != "cpu" or platform.machine().lower() not in ("x86_64", "amd64"):
         return None
     probes = [getattr(torch.cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]
