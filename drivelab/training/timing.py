@@ -92,10 +92,9 @@ def native_bf16(device: torch.device) -> bool | None:
         return torch.version.hip is not None or torch.cuda.get_device_capability(device)[0] >= 8
     if device.type != "cpu" or platform.machine().lower() not in ("x86_64", "amd64"):
         return None
-    probes = [getattr(torch.cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]
-    if not any(probes):
-        return None
-    return any(probe() for probe in probes if probe is not None)
+    probes = [getattr(torch.cpu, name) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+              if hasattr(torch.cpu, name)]  # private probes: a torch without them cannot tell
+    return any(probe() for probe in probes) if probes else None
 
 
 def machine() -> dict:
