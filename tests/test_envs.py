@@ -1,5 +1,6 @@
 """Environment layer: registration, MetaDrive offline adapter, action grid, vector envs."""
 
+import os
 from pathlib import Path
 
 import gymnasium as gym
@@ -254,6 +255,28 @@ def test_metadrive_vector_env_runs_in_subprocesses():
         envs.close()
     with pytest.raises(DrivelabError, match="one instance per process"):
         make_vector_env(EnvConfig(id="MetaDrive-10env-v0", backend="sync"))
+
+
+class _ReportsProbeVariable(gym.Wrapper):
+    """Puts the worker's DRIVELAB_PROBE environment variable into the reset's info."""
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        return obs, {**info, "probe": os.environ.get("DRIVELAB_PROBE", "unset")}
+
+
+def test_env_workers_see_the_trainers_environment_of_when_they_start(monkeypatch):
+    # The fork server (conftest starts it) began before these variables were set: the workers
+    # must see the trainer's environment of now, as spawned workers would.
+    cfg = EnvConfig(id="CartPole-v1", num_envs=2, backend="async")
+    for value in ("first", "second"):
+        monkeypatch.setenv("DRIVELAB_PROBE", value)
+        envs = make_vector_env(cfg, wrapper=_ReportsProbeVariable)
+        try:
+            _, info = envs.reset(seed=0)
+        finally:
+            envs.close()
+        assert list(info["probe"]) == [value, value]
 
 
 def test_box2d_and_pygame_coexist_with_metadrive():

@@ -14,6 +14,7 @@ import functools
 import multiprocessing
 import os
 import signal
+import sys
 from collections.abc import Callable
 
 import gymnasium as gym
@@ -29,7 +30,7 @@ from drivelab.envs.wrappers import ActionRepeat, DifferentialDrive, DiscreteActi
 from drivelab.errors import DrivelabError, kill_point
 
 __all__ = ["EnvConfig", "make_env", "make_vector_env", "env_spaces", "DiscreteActionGrid", "FixedThrottle", "DifferentialDrive",
-           "metadrive_ids", "needs_own_process"]
+           "metadrive_ids", "needs_own_process", "worker_start_method"]
 
 
 def _check_id(env_id: str) -> str:
@@ -128,7 +129,8 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
     cheap envs such as CartPole), ``"async"`` runs one subprocess per env, ``"ray"`` puts them in
     Ray actors (:mod:`drivelab.envs.ray_backend`, same contract). ``"auto"`` chooses async for
     simulators that allow only one instance per process (MetaDrive) and sync otherwise.
-    Subprocesses are started with ``spawn`` so no simulator or torch state leaks into them.
+    Subprocesses start from a fresh interpreter, never as forks of this process, so no simulator
+    or torch state leaks into them (:func:`worker_start_method`).
 
     ``autoreset_mode`` is passed through; each trainer chooses it deliberately (Gymnasium 1.x
     defaults to NEXT_STEP: the step after an episode ends only resets and ignores its action).
@@ -145,7 +147,12 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
     if mode == "sync":
         return SyncVectorEnv(fns, autoreset_mode=autoreset_mode)
     if mode == "async":
-        make = functools.partial(AsyncVectorEnv, fns, context="spawn", autoreset_mode=autoreset_mode)
+        # A fork server's workers inherit the server's os.environ, from when it started: each gets
+        # this process's, as a spawned worker would (proxies, DRIVELAB_KILL_AT, a user's settings).
+        environ = dict(os.environ)
+        fns = [functools.partial(_with_environment, environ, fn) for fn in fns]
+        make = functools.partial(AsyncVectorEnv, fns, context=worker_start_method(cfg.id),
+                                 autoreset_mode=autoreset_mode)
         return SupervisedVectorEnv(make, cfg.step_timeout, cfg.max_restarts, cfg.restart_window, on_restart)
     if mode == "ray":
         from drivelab.envs.ray_backend import RayVectorEnv
@@ -153,6 +160,32 @@ def make_vector_env(cfg: EnvConfig, num_envs: int | None = None, *,
         return RayVectorEnv(fns, cfg.envs_per_actor, autoreset_mode, cfg.actor_cpus, cfg.step_timeout,
                             cfg.max_restarts, cfg.restart_window, on_restart)
     raise DrivelabError(f"config field 'env.backend' must be auto, sync, async or ray, got {mode!r}")
+
+
+def worker_start_method(env_id: str) -> str:
+    """How env worker subprocesses start: ``"forkserver"`` on Linux, ``"spawn"`` elsewhere.
+
+    Both start each worker from a fresh interpreter, not as a fork of the trainer. The fork server
+    is one such interpreter per trainer that imports the env's modules once and forks every worker
+    from itself, so a worker does not import them again: two MetaDrive workers took 7.4 s to
+    start, reset and close with ``spawn`` and 1.1 s from a running fork server (2 GHz AMD EPYC,
+    ``benchmarks/worker_start.py``). That time recurs for every evaluation, video and restarted
+    worker. macOS keeps ``spawn``: its system libraries are not safe to use after fork.
+    """
+    if not sys.platform.startswith("linux"):
+        return "spawn"
+    # Read when the server starts, so the first subprocess vector env of a process chooses; a
+    # module that fails to import is skipped there and imported by each worker as with spawn.
+    modules = ["drivelab.envs", "metadrive"] if needs_own_process(env_id) else ["drivelab.envs"]
+    multiprocessing.get_context("forkserver").set_forkserver_preload(modules)
+    return "forkserver"
+
+
+def _with_environment(environ: dict[str, str], make: Callable[[], gym.Env]) -> gym.Env:
+    """In an env worker: set ``os.environ`` to the trainer's (``environ``), then build the env."""
+    os.environ.clear()
+    os.environ.update(environ)
+    return make()
 
 
 class KillPointInWorker(gym.Wrapper):
