@@ -7,7 +7,10 @@ from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
+from drivelab.envs import worker_start_method
 from flaky_env import importable_env
+
+METADRIVE_ID = "MetaDrive-10env-v0"   # whose modules the test processes' fork server imports
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
@@ -21,11 +24,11 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture(scope="session", autouse=True)
 def fork_server_with_metadrive():
-    """Start this pytest process's fork server with MetaDrive imported (Linux): most of the suite's
-    subprocess envs are MetaDrive's, so each forks in under a second instead of importing it again
-    (6 s of CPU on a 2 GHz core). drivelab.envs.worker_start_method would choose by the first env."""
-    if sys.platform.startswith("linux"):
-        multiprocessing.get_context("forkserver").set_forkserver_preload(["drivelab.envs", "metadrive"])
+    """Start this pytest process's fork server (Linux) as a MetaDrive run would, with MetaDrive
+    imported: most of the suite's subprocess envs are MetaDrive's, so each forks in under a second
+    instead of importing it again (6 s of CPU on a 2 GHz core). Left to itself, the server would
+    take the preloads of whichever env the first test happens to build."""
+    if worker_start_method(METADRIVE_ID) == "forkserver":
         multiprocessing.forkserver.ensure_running()
 
 
@@ -54,6 +57,6 @@ def run_in_fresh_process(fn, *args, timeout: float = 300):
     CI and took the whole suite down. In a fresh process the same test is isolated, an assertion comes
     back as itself (with the child's traceback as its cause) and a crash fails only this test.
     """
-    method = "forkserver" if sys.platform.startswith("linux") else "spawn"   # a fresh interpreter either way
-    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context(method)) as pool:
+    context = multiprocessing.get_context(worker_start_method(METADRIVE_ID))  # a fresh interpreter either way
+    with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
         return pool.submit(fn, *args).result(timeout=timeout)
