@@ -2,15 +2,13 @@ import multiprocessing
 import multiprocessing.forkserver
 import os
 import subprocess
-import sys
 from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
 from drivelab.envs import worker_start_method
 from flaky_env import importable_env
-
-METADRIVE_ID = "MetaDrive-10env-v0"   # whose modules the test processes' fork server imports
+from processes import METADRIVE_ID, run_drivelab
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
@@ -27,18 +25,22 @@ def fork_server_with_metadrive():
     """Start this pytest process's fork server (Linux) as a MetaDrive run would, with MetaDrive
     imported: most of the suite's subprocess envs are MetaDrive's, so each forks in under a second
     instead of importing it again (6 s of CPU on a 2 GHz core). Left to itself, the server would
-    take the preloads of whichever env the first test happens to build."""
+    take the preloads of whichever env the first test happens to build. It imports drivelab's CLI
+    (and so torch) too, for the CLI runs of :func:`run_drivelab`, and torch._dynamo, which torch
+    imports when a run builds its first optimizer (2.7 s of CPU on a 2 GHz core)."""
     if worker_start_method(METADRIVE_ID) == "forkserver":
+        env_modules = multiprocessing.forkserver._forkserver._preload_modules
+        multiprocessing.set_forkserver_preload([*env_modules, "drivelab.cli", "torch._dynamo"])
         multiprocessing.forkserver.ensure_running()
 
 
 @pytest.fixture
 def run_cli():
-    """Run `python -m drivelab ARGS...` and return the CompletedProcess (text output)."""
+    """Run ``drivelab ARGS...`` (:func:`run_drivelab`) with this directory importable (``--env
+    flaky_env:Flaky-v0``) and return the CompletedProcess (text output)."""
 
     def _run(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", "drivelab", *map(str, args)], capture_output=True, text=True,
-                              timeout=timeout, env=importable_env())  # --env flaky_env:Flaky-v0
+        return run_drivelab(*args, env=importable_env(), timeout=timeout)
 
     return _run
 

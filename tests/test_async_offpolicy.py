@@ -6,8 +6,6 @@ The replay buffer of the final checkpoint is read back and checked transition by
 """
 
 import csv
-import subprocess
-import sys
 
 import numpy as np
 import torch
@@ -16,6 +14,7 @@ from safetensors.torch import load_file
 from drivelab.api import build_config, train
 from drivelab.training.checkpoint import list_checkpoints, load_checkpoint
 from flaky_env import importable_env
+from processes import run_drivelab
 
 
 def _tally(run_dir, algo="td3", steps=480, **env_kwargs):
@@ -104,12 +103,10 @@ def test_a_killed_asynchronous_run_resumes(tmp_path):
             "--td3.hidden", "[16]", "--td3.batch_size", "16", "--steps", "480", "--checkpoint_every", "160",
             "--eval.every", "0", "--seed", "3", "--no-progress", "--resume-if-exists", "--run-dir", str(run_dir)]
     env = {**importable_env(), "DRIVELAB_KILL_AT": "mid-checkpoint:3", "DRIVELAB_KILL_MARKER": str(tmp_path / "killed")}
-    killed = subprocess.run([sys.executable, "-m", "drivelab", "train", *args], capture_output=True, text=True,
-                            timeout=300, env=env)
+    killed = run_drivelab("train", *args, env=env, timeout=300)
     assert killed.returncode == -9 and (tmp_path / "killed").exists(), killed.stderr
     assert load_checkpoint(run_dir).step == 160      # killed while writing the step-320 checkpoint
-    again = subprocess.run([sys.executable, "-m", "drivelab", "train", *args], capture_output=True, text=True,
-                           timeout=300, env=importable_env())
+    again = run_drivelab("train", *args, env=importable_env(), timeout=300)
     assert again.returncode == 0, again.stderr
     replay = _replay(run_dir)
     assert load_checkpoint(run_dir).step == 480 and len(replay["rewards"]) == 480

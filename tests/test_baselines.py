@@ -1,5 +1,5 @@
 """Reference policies (drivelab.tools.baselines): the MetaDrive expert and the lane keeper run inside
-spawned env processes, exactly like evaluation of a checkpoint; errors are one-line DrivelabErrors."""
+env subprocesses, exactly like evaluation of a checkpoint; errors are one-line DrivelabErrors."""
 
 from pathlib import Path
 
@@ -13,12 +13,14 @@ import drivelab  # noqa: F401  (registers the ids)
 from drivelab.tools.baselines import (BASELINES, ExpertActionObservation, LaneKeepingObservation, ObservationIsAction,
                                 RandomPolicy, baseline)
 from drivelab.envs.wrappers import DiscreteActionGrid
+from drivelab.envs import worker_start_method
 from drivelab.errors import DrivelabError
+from processes import METADRIVE_ID
 
 HORIZON = 100
 
 
-# Module-level env factories: spawned workers import this module to rebuild them.
+# Module-level env factories: the workers import this module to rebuild them.
 def expert_env() -> gym.Env:
     return ExpertActionObservation(gym.make("MetaDrive-validation-v0", horizon=HORIZON))
 
@@ -38,9 +40,12 @@ def _metadrive_files() -> set[str]:
     return {str(p.relative_to(root)) for p in root.rglob("*") if "__pycache__" not in p.parts}
 
 
-def _play(env_fn, policy, seeds: list[int]) -> tuple[list[dict], np.ndarray]:
-    """One episode per seed, in parallel subprocesses; returns each env's last info and every action."""
-    envs = AsyncVectorEnv([env_fn] * len(seeds), context="spawn", autoreset_mode=AutoresetMode.DISABLED)
+def _play(env_fn, policy, seeds: list[int], context: str | None = None) -> tuple[list[dict], np.ndarray]:
+    """One episode per seed, in parallel subprocesses; returns each env's last info and every action.
+    The subprocesses start as drivelab's env workers do (``context`` None: from the test session's
+    fork server on Linux, which has imported MetaDrive) or with ``context``."""
+    context = context or worker_start_method(METADRIVE_ID)
+    envs = AsyncVectorEnv([env_fn] * len(seeds), context=context, autoreset_mode=AutoresetMode.DISABLED)
     try:
         obs, _ = envs.reset(seed=seeds)
         actions, last = [], [None] * len(seeds)
@@ -64,7 +69,7 @@ def test_metadrive_expert_drives_offline_in_spawned_subprocesses(monkeypatch):
     before = _metadrive_files()
     wrapper, policy = baseline("metadrive-expert", gym.spaces.Box(-1.0, 1.0, (2,), np.float32))
     assert wrapper.func is ExpertActionObservation and wrapper.keywords == {"deterministic": True}
-    last, actions = _play(expert_env, policy, seeds=[0, 1])
+    last, actions = _play(expert_env, policy, seeds=[0, 1], context="spawn")   # spawned: they see the proxies
     assert actions.shape[1] == 2 and actions.dtype == np.float32
     assert np.all(actions >= -1.0) and np.all(actions <= 1.0)
     assert actions[:, 1].mean() > 0.1                     # the expert accelerates

@@ -13,6 +13,7 @@ import drivelab
 from drivelab.api import evaluate_checkpoint
 from drivelab.errors import DrivelabError
 from drivelab.tools.drivers import CARD_METRICS, DRIVERS_DIR, read_card, shipped_drivers
+from processes import run_drivelab
 
 ROOT = Path(__file__).resolve().parent.parent
 NAME = "drivelab-driver"
@@ -61,11 +62,10 @@ def test_another_observation_layout_is_refused():
 
 
 def test_models_and_card_commands():
-    listing = subprocess.run([sys.executable, "-m", "drivelab", "models"], capture_output=True, text=True, check=True)
-    assert NAME in listing.stdout
-    card = subprocess.run([sys.executable, "-m", "drivelab", "eval", NAME, "--card"], capture_output=True, text=True,
-                          check=True)
-    assert "metadrive-expert" in card.stdout and "reproduce" in card.stdout
+    listing = run_drivelab("models")
+    assert listing.returncode == 0 and NAME in listing.stdout, listing.stderr
+    card = run_drivelab("eval", NAME, "--card")
+    assert card.returncode == 0 and "metadrive-expert" in card.stdout and "reproduce" in card.stdout
 
 
 # The card's per-episode numbers are those of the shipped weights: the first scenarios of the
@@ -79,8 +79,8 @@ def test_the_card_matches_the_shipped_weights_on_its_first_scenarios():
 
 
 def test_export_by_name_drives_without_drivelab(tmp_path):
-    subprocess.run([sys.executable, "-m", "drivelab", "export", NAME, "--format", "onnx", "--out", str(tmp_path / "x")],
-                   check=True, capture_output=True)
+    exported = run_drivelab("export", NAME, "--format", "onnx", "--out", tmp_path / "x")
+    assert exported.returncode == 0, exported.stderr
     meta = json.loads((tmp_path / "x" / "policy.json").read_text())
     assert meta["file"] == "policy.onnx"
     out = subprocess.run([sys.executable, str(ROOT / "examples" / "onnx_drive.py"), str(tmp_path / "x"), "--episodes", "1"],

@@ -270,46 +270,12 @@ def test_reward_plot_and_compare_cli(run_cli, tmp_path):
     assert bad.returncode == 2 and "missing.yaml" in bad.stderr and "Traceback" not in bad.stderr
 
 
-class _RandomPolicy:
-    """Uniform random actions, for the baseline a trained agent must beat."""
-
-    def __init__(self, space: gym.Space):
-        self.space = space
-        space.seed(0)
-
-    def act(self, obs, deterministic: bool = True):
-        return np.stack([self.space.sample() for _ in range(obs.shape[0])])
-
-    def to_env(self, action):
-        return action
-
-
-@pytest.mark.slow
-def test_ppo_learns_lane_following_better_than_random(tmp_path):
-    from gymnasium.vector import AutoresetMode
-
-    from drivelab.api import build_config, evaluate_checkpoint, train
-    from drivelab.config import read_yaml
-    from drivelab.envs import make_vector_env
-    from drivelab.training.evaluation import run_episodes
-
-    cfg = build_config({**read_yaml("configs/ppo_lanefollow.yaml"), "steps": 20000, "seed": 0, "run_dir": str(tmp_path / "lf")})
-    train(cfg, progress=False)
-    trained = evaluate_checkpoint(tmp_path / "lf", episodes=10)[0].summary()
-    envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.DISABLED)
-    try:
-        random = run_episodes(envs, _RandomPolicy(envs.single_action_space), 10).summary()
-    finally:
-        envs.close()
-    # Measured (seed 0, 20k steps): trained route 0.24, |CTE| 0.54 m, episodes of ~120 steps;
-    # random route 0.03, |CTE| 0.33 m over its ~30-step episodes. 0.8 m is where the car's edge
-    # reaches the lane line. (The config's 80k steps reach route 0.73, |CTE| 0.46 m, 50% success.)
-    # This test once asserted random + 0.3 after a measured route 0.51 at commit 7564026; that
-    # commit, rerun with today's packages, gives route 0.236, |CTE| 0.535 m, 123-step episodes,
-    # the numbers of every later commit: the drop came from the installed stack (float rounding
-    # of a single 20k-step stream), not from a change to drivelab.
-    assert trained["route_completion"] > random["route_completion"] + 0.15, (trained, random)
-    assert trained["mean_abs_cte"] < 0.8, trained
+# PPO learning lane following (configs/ppo_lanefollow.yaml) is measured by a benchmark, no longer
+# by a test: `python benchmarks/training.py learn --config configs/ppo_lanefollow.yaml --steps 20000
+# --seed 0 --episodes 10` (benchmarks/results/ppo_lanefollow_20k.json: route 0.23, |CTE| 0.53 m;
+# random: route 0.03). As a test it took 3.5 minutes of the suite's two cores on a 2 GHz CPU. PPO
+# learning on MetaDrive is the test below; the task trains with each algorithm family in
+# test_driving_tasks_train_with_each_family.
 
 
 @pytest.mark.slow
@@ -330,8 +296,8 @@ def test_a_short_metadrive_run_drives_further_than_random(tmp_path):
                                 "log_std_final": None, "target_kl": None}})
     train(cfg, progress=False)
     trained = evaluate_checkpoint(tmp_path / "md", episodes=10)[0].summary()
-    # 5 random episodes: it creeps to the time limit (~860 steps each), always near route 0.04
-    random = evaluate_baseline("random", EnvConfig(id=cfg.env.id, kwargs=dict(cfg.env.kwargs), num_envs=2), 5).summary()
+    # 2 random episodes: it creeps to the time limit (~860 steps each), always near route 0.04
+    random = evaluate_baseline("random", EnvConfig(id=cfg.env.id, kwargs=dict(cfg.env.kwargs), num_envs=2), 2).summary()
     # Measured (30k steps, ~60 s of training): route 0.22 with seed 0, 0.25 with seed 1 (out of
     # road 1.0: it drives, but not yet through curves); random route 0.04 (it creeps to the time
     # limit). With the idle penalty, seed 0: 0.18 at 30k, 0.04 at 40k. Since `steps` is rounded to

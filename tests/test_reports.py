@@ -14,6 +14,7 @@ import pytest
 
 import drivelab
 from drivelab.training.plots import mean_and_band, rolling_mean
+from processes import run_drivelab
 
 
 @pytest.fixture(scope="module")
@@ -151,13 +152,12 @@ def test_mlflow_round_trip_through_a_tracking_server(mlflow_server, run_cli, tmp
     assert run.data.tags["algo"] == "ppo" and "episode/return" in run.data.metrics
     fresh = tmp_path / "elsewhere"
     fresh.mkdir()
-    ev = subprocess.run([sys.executable, "-m", "drivelab", "eval", f"mlflow:{run_id}", "--mlflow-uri", mlflow_server,
-                         "--episodes", "2", "--json"], cwd=fresh, capture_output=True, text=True, timeout=300)
+    ev = run_drivelab("eval", f"mlflow:{run_id}", "--mlflow-uri", mlflow_server, "--episodes", "2", "--json",
+                      cwd=fresh, timeout=300)
     assert ev.returncode == 0, ev.stderr
     assert json.loads(ev.stdout.strip().splitlines()[-1])["step"] == 1024
-    resumed = subprocess.run([sys.executable, "-m", "drivelab", "train", "--resume", f"mlflow:{run_id}", "--steps", "2048",
-                              "--mlflow-uri", mlflow_server, "--no-progress"], cwd=fresh, capture_output=True,
-                             text=True, timeout=300)
+    resumed = run_drivelab("train", "--resume", f"mlflow:{run_id}", "--steps", "2048", "--mlflow-uri", mlflow_server,
+                           "--no-progress", cwd=fresh, timeout=300)
     assert resumed.returncode == 0, resumed.stderr
     assert (fresh / "runs" / f"mlflow-{run_id}" / "checkpoints" / "step_000000002048").is_dir()
     metrics = mlflow.MlflowClient(tracking_uri=mlflow_server).get_metric_history(run_id, "perf/steps_per_s")

@@ -9,8 +9,8 @@ checkpoint, or Pendulum's 200-step episodes at a checkpoint every 400 steps), it
 must equal those of the uninterrupted run bit for bit.
 """
 
+import functools
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -22,6 +22,7 @@ from drivelab.cli import main
 from drivelab.errors import KILL_PHASES
 from drivelab.training.checkpoint import list_checkpoints, load_checkpoint
 from flaky_env import importable_env
+from processes import run_drivelab
 
 # Tiny runs with a periodic checkpoint, an evaluation that films its best, and a final checkpoint.
 RUNS = {
@@ -57,8 +58,7 @@ def _killed(args: list[str], phase: str, tmp_path: Path) -> subprocess.Completed
     """``drivelab train ARGS`` killed at ``phase`` (``NAME:N``); ``tmp_path/killed-NAME`` records the kill."""
     marker = tmp_path / f"killed-{phase.split(':')[0]}"
     env = {**importable_env(), "DRIVELAB_KILL_AT": phase, "DRIVELAB_KILL_MARKER": str(marker)}
-    return subprocess.run([sys.executable, "-m", "drivelab", "train", *args], capture_output=True, text=True,
-                          timeout=300, env=env)
+    return run_drivelab("train", *args, env=env, timeout=300)
 
 
 def _final_weights(run_dir: Path) -> dict[str, torch.Tensor]:
@@ -68,15 +68,19 @@ def _final_weights(run_dir: Path) -> dict[str, torch.Tensor]:
 
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):
-    """The final weights of each run trained without a kill."""
-    out = {}
-    for algo, args in RUNS.items():
+    """The final weights of a run of ``algo`` trained without a kill: ``uninterrupted(algo)``.
+    Each is trained when first asked for, so a pytest-xdist worker trains only the algorithms of
+    the tests it runs."""
+
+    @functools.cache
+    def weights(algo: str) -> dict[str, torch.Tensor]:
         run_dir = tmp_path_factory.mktemp(f"straight-{algo}")
         with pytest.raises(SystemExit) as exit_:
-            main(["train", *args, *COMMON, "--run-dir", str(run_dir)])
+            main(["train", *RUNS[algo], *COMMON, "--run-dir", str(run_dir)])
         assert exit_.value.code == 0
-        out[algo] = _final_weights(run_dir)
-    return out
+        return _final_weights(run_dir)
+
+    return weights
 
 
 def test_every_phase_is_tested():
@@ -101,9 +105,9 @@ def test_a_run_killed_at_each_phase_finishes_with_the_same_weights(algo, uninter
         _train_in_process(args, capsys)          # the same command, requeued
         assert load_checkpoint(run_dir).step == int(RUNS[algo][RUNS[algo].index("--steps") + 1]), phase
         weights = _final_weights(run_dir)
-        assert weights.keys() == uninterrupted[algo].keys(), phase
+        assert weights.keys() == uninterrupted(algo).keys(), phase
         for key, value in weights.items():
-            assert torch.equal(value, uninterrupted[algo][key]), (phase, key)
+            assert torch.equal(value, uninterrupted(algo)[key]), (phase, key)
         leftovers = [p.name for p in (run_dir / "checkpoints").iterdir() if p.name.startswith(".")]
         assert leftovers == [], (phase, leftovers)
         (tmp_path / f"killed-{phase}").unlink()
@@ -126,7 +130,7 @@ def test_a_metadrive_run_killed_while_checkpointing_finishes_from_its_last_check
     killed = _killed(args, "mid-checkpoint:3", tmp_path)     # writing the step-512 checkpoint
     assert killed.returncode == -9 and load_checkpoint(run_dir).step == 256, killed.stderr
     # requeued in a process of its own: MetaDrive engines must not pile up in the pytest process
-    again = subprocess.run([sys.executable, "-m", "drivelab", "train", *args], capture_output=True, text=True, timeout=300)
+    again = run_drivelab("train", *args, timeout=300)
     assert again.returncode == 0, again.stderr
     assert load_checkpoint(run_dir).step == 512
     assert not [p for p in (run_dir / "checkpoints").iterdir() if p.name.startswith(".")]
@@ -181,8 +185,7 @@ def _flaky_args(run_dir: Path, marker: Path) -> list[str]:
 
 def test_an_unexpected_error_in_training_is_one_line_with_a_log_and_the_checkpoint_intact(tmp_path, capsys):
     run_dir = tmp_path / "run"
-    done = subprocess.run([sys.executable, "-m", "drivelab", "train", *_flaky_args(run_dir, tmp_path / "marker")],
-                          capture_output=True, text=True, timeout=300, env=importable_env())
+    done = run_drivelab("train", *_flaky_args(run_dir, tmp_path / "marker"), env=importable_env(), timeout=300)
     lines = [line for line in done.stderr.strip().splitlines() if not line.startswith("drivelab: warning")]
     assert done.returncode == 1 and len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
     assert "RuntimeError: the simulator crashed (on purpose)" in lines[0] and str(run_dir / "error.log") in lines[0]

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from drivelab.training.checkpoint import checkpoint_step, list_checkpoints
+from processes import run_drivelab
 
 TRAIN = ["-m", "drivelab", "train", "--algo", "ppo", "--env", "CartPole-v1", "--num-envs", "2", "--no-progress"]
 
@@ -55,8 +56,7 @@ def test_a_signal_stops_the_run_with_a_checkpoint_that_resumes(sig, env, extra, 
     assert "--resume" in _one_line(stderr)
     step = int(list_checkpoints(run_dir)[-1].name.split("_")[-1])
     assert step > 0 and not list((run_dir / "checkpoints").glob(".tmp_*"))
-    resumed = subprocess.run([sys.executable, "-m", "drivelab", "train", "--resume", str(run_dir), "--steps",
-                              str(step + 512), "--no-progress"], capture_output=True, text=True, timeout=180)
+    resumed = run_drivelab("train", "--resume", run_dir, "--steps", step + 512, "--no-progress", timeout=180)
     assert resumed.returncode == 0, resumed.stderr
     assert int(list_checkpoints(run_dir)[-1].name.split("_")[-1]) >= step + 512
 
@@ -139,19 +139,17 @@ def test_a_second_writer_is_refused(tmp_path):
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 60
-        while not (run_dir / "config.yaml").is_file():  # written once the first writer holds the lock
+        while not list_checkpoints(run_dir):  # the first writer holds the lock, and there is a checkpoint to resume
             assert time.time() < deadline and first.poll() is None
             time.sleep(0.1)
-        second = subprocess.run([sys.executable, "-m", "drivelab", "train", "--resume", str(run_dir), "--steps",
-                                 "200000000", "--no-progress"], capture_output=True, text=True, timeout=60)
+        second = run_drivelab("train", "--resume", run_dir, "--steps", "200000000", "--no-progress", timeout=60)
         assert second.returncode == 2 and "in use by another drivelab process" in _one_line(second.stderr)
     finally:
         first.kill()
         first.wait()
     # a killed writer leaves no stuck lock: the run can be resumed at once
-    again = subprocess.run([sys.executable, "-m", "drivelab", "train", "--resume", str(run_dir), "--steps",
-                            str(int(list_checkpoints(run_dir)[-1].name.split("_")[-1]) + 2048), "--no-progress"],
-                           capture_output=True, text=True, timeout=120)
+    again = run_drivelab("train", "--resume", run_dir, "--steps",
+                         int(list_checkpoints(run_dir)[-1].name.split("_")[-1]) + 2048, "--no-progress", timeout=120)
     assert again.returncode == 0, again.stderr
 
 

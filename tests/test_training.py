@@ -143,7 +143,9 @@ def test_bad_input_is_one_line_without_traceback(args, fragment, run_cli, tmp_pa
 
 
 def test_max_minutes_stops_training_with_a_final_checkpoint(tmp_path):
-    cfg = _cartpole(tmp_path / "t", 10**9, max_minutes=0.03)
+    # 6 s: the clock starts before the env processes do, and the first 1000-step batch must fit
+    # in what is left on a loaded machine (1.8 s once ended a run at step 0 beside other tests)
+    cfg = _cartpole(tmp_path / "t", 10**9, max_minutes=0.1)
     train(cfg, progress=False)
     last = resolve_checkpoint(tmp_path / "t")
     assert 0 < int(last.name.split("_")[-1]) < 10**6
