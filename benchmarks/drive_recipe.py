@@ -132,7 +132,10 @@ def main() -> int:
             continue
         if args.skip_train and not (run_dir / "training.json").is_file():
             continue
-        trained = train_seed(args.config, seed, run_dir, overrides)
+        try:
+            trained = train_seed(args.config, seed, run_dir, overrides)
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the run saved a checkpoint of this moment
+            raise SystemExit(f"interrupted; the same command resumes seed {seed} in {run_dir}") from None
         row = {k: v for k, v in heldout(run_dir).items() if k != "per_episode"}
         table[str(seed)] = {**trained, **row, "selection": selection_curve(run_dir)}
         print(json.dumps({"seed": seed, **{k: v for k, v in table[str(seed)].items() if k != "selection"}}), flush=True)
