@@ -167,7 +167,7 @@ def test_sac_trains_with_bf16_updates_and_saves_float32_weights(tmp_path, monkey
     run_dir = tmp_path / "bf16"
     train(_pendulum(run_dir, "sac", 600, bf16_updates=True), progress=False)
     warnings = [line for line in capsys.readouterr().err.splitlines() if "bf16_updates" in line]
-    assert len(warnings) == 1 and "emulation" in warnings[0] and "--sac.bf16_updates false" in warnings[0]
+    assert len(warnings) == 1 and "emulation" in warnings[0] and "--sac.bf16_updates auto or false" in warnings[0]
     start = load_file(str(list_checkpoints(run_dir)[0] / "tensors.safetensors"))
     end = load_file(str(list_checkpoints(run_dir)[-1] / "tensors.safetensors"))
     weights = [k for k in end if k.startswith(("module/policy/actor.", "module/policy/critic."))]

@@ -407,9 +407,16 @@ def _precision(bf16):
     return update_precision(ddpg.Params(bf16_updates=bf16), torch.device("cpu"))
 
 
-def test_bf16_updates_turn_autocast_on_only_when_asked_and_refuse_crossq():
+def test_bf16_updates_turn_autocast_on_only_when_asked_and_refuse_crossq(monkeypatch):
     for bf16 in (False, True):
         with _precision(bf16):
             assert torch.is_autocast_enabled("cpu") == bf16
+    # auto: bfloat16 only where the hardware computes it (timing.native_bf16: None is "cannot tell")
+    for native in (True, False, None):
+        monkeypatch.setattr("drivelab.training.offpolicy.native_bf16", lambda device, answer=native: answer)
+        with _precision("auto"):
+            assert torch.is_autocast_enabled("cpu") == (native is True)
+    with pytest.raises(DrivelabError, match="'bf16_updates' must be true, false or auto"):
+        sac.Params(bf16_updates="fast").validate()
     with pytest.raises(DrivelabError, match="td3.bf16_updates"):
         td3.Params(crossq=True, bf16_updates=True).validate()

@@ -29,6 +29,7 @@ from drivelab.training.checkpoint import Checkpoint
 from drivelab.training.episodes import stack_infos
 from drivelab.training.nets import OffPolicyAgent
 from drivelab.training.run import Run
+from drivelab.training.timing import native_bf16
 from drivelab.training.worker_rollouts import ActorInWorker, Exploration
 
 
@@ -50,8 +51,9 @@ class OffPolicyParams:
     compile: bool = False             # torch.compile the critic and actor forward passes
     # The learner's updates under bfloat16 autocast (update_precision), the output layers kept
     # float32 (nets.in_float32): ~1.5x faster updates where the CPU has AVX512-BF16 or AMX, and on
-    # GPUs; elsewhere torch emulates bfloat16 and the updates run slower (the run warns: Run).
-    bf16_updates: bool = False
+    # GPUs; elsewhere torch emulates bfloat16 and the updates run slower (true warns there: Run).
+    # auto: bfloat16 where the hardware computes it (timing.native_bf16), float32 elsewhere.
+    bf16_updates: bool | str = False
     # The env workers act with a copy of the actor and keep stepping while the learner updates
     # (subprocess envs; see ReplayCollector): faster, with a policy lag of one chunk.
     act_in_workers: bool = False
@@ -65,6 +67,8 @@ class OffPolicyParams:
             raise DrivelabError("config fields 'chunk_steps' and 'chunks_in_flight' must be >= 1")
         if self.n_step < 1:
             raise DrivelabError(f"config field 'n_step' must be >= 1, got {self.n_step}")
+        if self.bf16_updates not in (True, False, "auto"):
+            raise DrivelabError(f"config field 'bf16_updates' must be true, false or auto, got {self.bf16_updates!r}")
         if not 0 < self.tau <= 1 or not 0 <= self.gamma <= 1 or self.utd <= 0:
             raise DrivelabError("config fields 'tau' (0, 1], 'gamma' [0, 1] and 'utd' (> 0) are out of range")
 
@@ -74,9 +78,15 @@ class OffPolicyParams:
         return num_envs
 
 
+def updates_in_bf16(hp: OffPolicyParams, device: torch.device) -> bool:
+    """Whether the learner's updates run in bfloat16: ``bf16_updates`` true, or auto on a device
+    that computes bfloat16 in hardware."""
+    return hp.bf16_updates is True or (hp.bf16_updates == "auto" and native_bf16(device) is True)
+
+
 def update_precision(hp: OffPolicyParams, device: torch.device) -> contextlib.AbstractContextManager:
-    """The context of the learner's updates: bfloat16 autocast with ``hp.bf16_updates``, else a no-op."""
-    if not hp.bf16_updates:
+    """The context of the learner's updates: bfloat16 autocast where :func:`updates_in_bf16`, else a no-op."""
+    if not updates_in_bf16(hp, device):
         return contextlib.nullcontext()
     return torch.autocast(device.type, dtype=torch.bfloat16)
 

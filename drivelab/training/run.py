@@ -78,10 +78,11 @@ Callback = Callable[[RunEvent], "bool | None"]
 def _warn_emulated_bf16(cfg: TrainConfig, device: torch.device) -> None:
     """``bf16_updates`` where the hardware has no bfloat16 arithmetic makes the updates slower, not
     faster (7x on an AVX2-only CPU: sac_update_cost_avx2.json): one line on stderr, the run goes on as configured."""
-    if getattr(cfg.algo_params, "bf16_updates", False) and native_bf16(device) is False:
+    if getattr(cfg.algo_params, "bf16_updates", False) is True and native_bf16(device) is False:
         print(f"drivelab: warning: {cfg.algo}.bf16_updates is on, but this machine's {device.type} computes "
               f"bfloat16 only by emulation (x86 CPUs need AVX512-BF16 or AMX, GPUs compute capability 8.0): "
-              f"its updates run several times slower than float32 (--{cfg.algo}.bf16_updates false)", file=sys.stderr)
+              f"its updates run several times slower than float32 (--{cfg.algo}.bf16_updates auto or false)",
+              file=sys.stderr)
 
 
 class Run:

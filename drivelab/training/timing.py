@@ -8,6 +8,7 @@ The sections are reused, so timing allocates nothing per step.
 
 from __future__ import annotations
 
+import functools
 import os
 import platform
 import time
@@ -82,6 +83,7 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+@functools.cache  # asked at every update (offpolicy.update_precision); the answer never changes
 def native_bf16(device: torch.device) -> bool | None:
     """Whether ``device`` computes bfloat16 in hardware: on x86 CPUs AVX512-BF16 or AMX, on NVIDIA
     GPUs compute capability 8.0 (Ampere) or newer, on ROCm always; None where torch cannot tell
