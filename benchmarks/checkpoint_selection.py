@@ -22,9 +22,9 @@ import argparse
 import json
 from pathlib import Path
 
+from drive_recipe import EPISODES as HELDOUT_EPISODES, HELDOUT_ENV  # the protocol whose `best` this scores
 from drivelab.api import evaluate_checkpoint
-
-HELDOUT_ENV, HELDOUT_EPISODES = "MetaDrive-validation-v0", 200
+from drivelab.training.checkpoint import checkpoint_step, list_checkpoints
 
 
 def cached(path: Path, key: str, compute) -> dict:
@@ -44,10 +44,6 @@ def evaluation(checkpoint: Path, episodes: int, seed: int) -> dict:
             "per_episode_success": [float(x) for x in result.metrics["success_rate"]]}
 
 
-def step_of(checkpoint: Path) -> int:
-    return int(checkpoint.name.removeprefix("step_"))
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=Path, required=True, help="drive_recipe.py's --runs folder (RUN/seed_N)")
@@ -64,8 +60,7 @@ def main() -> None:
         if not (run / "heldout.json").is_file():
             raise SystemExit(f"{run / 'heldout.json'}: missing; run benchmarks/drive_recipe.py on this seed first")
         own = json.loads((run / "heldout.json").read_text())
-        checkpoints = sorted((c for c in (run / "checkpoints").glob("step_*") if step_of(c) >= args.from_step),
-                             key=step_of)
+        checkpoints = [c for c in list_checkpoints(run) if checkpoint_step(c) >= args.from_step]
         if not checkpoints:
             raise SystemExit(f"{run / 'checkpoints'}: no step_* checkpoint from step {args.from_step} on")
         selection = {c.name: cached(run / f"selection_{args.episodes}.json", c.name,
@@ -74,7 +69,7 @@ def main() -> None:
         pick = max(checkpoints, key=lambda c: (selection[c.name]["success_rate"], selection[c.name]["return_mean"]))
         # The run's own best is a copy of the policy evaluated at that step, which the next periodic
         # checkpoint follows by at most one chunk of updates: the pick is "the same" when it is that checkpoint.
-        same_as_own = step_of(pick) == min((step_of(c) for c in checkpoints), key=lambda s: abs(s - own["step"]))
+        same_as_own = pick == min(checkpoints, key=lambda c: abs(checkpoint_step(c) - own["step"]))
         heldout = (own["success_rate"] if same_as_own else
                    cached(run / "heldout_steps.json", pick.name,
                           lambda: evaluation(pick, HELDOUT_EPISODES, 0))["success_rate"])
