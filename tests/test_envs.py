@@ -13,7 +13,7 @@ from drivelab.config import EnvConfig
 from drivelab.envs import make_env, make_vector_env, metadrive_ids
 from drivelab.envs.metadrive import assets_installed, held_in_simulator
 from drivelab.envs.registration import TASKS
-from drivelab.envs.wrappers import ActionRepeat, DiscreteActionGrid
+from drivelab.envs.wrappers import ActionRepeat, DiscreteActionGrid, ScenarioReplay
 from drivelab.errors import DrivelabError
 
 
@@ -177,6 +177,79 @@ def test_action_repeat_holds_the_action_sums_rewards_and_stops_at_the_episode_en
     assert inner.actions == [0.5, 0.5, -0.5, -0.5, 0.25]
     with pytest.raises(DrivelabError, match="env.action_repeat"):
         EnvConfig(id="CartPole-v1", action_repeat=0).validate()
+
+
+class _Scenarios(gym.Env):
+    """One-step episodes on scenarios 0..99 (drawn like drivelab's MetaDrive adapter draws them);
+    the episode succeeds unless the scenario is in ``hard``."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def __init__(self, hard: set[int]):
+        self.hard = hard
+        self.scenario = -1
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        options = options or {}
+        self.scenario = int(options["scenario"]) if "scenario" in options else int(self.np_random.integers(100))
+        return np.zeros(1, np.float32), {"scenario": self.scenario}
+
+    def step(self, action):
+        success = self.scenario not in self.hard
+        return np.zeros(1, np.float32), 0.0, success, not success, {"scenario": self.scenario, "success": success}
+
+
+def _play_episodes(env: gym.Env, episodes: int, seed: int) -> list[tuple[int, bool]]:
+    """(scenario, replayed) of each episode; the first reset is seeded, the others are not (as in a worker)."""
+    played = []
+    for episode in range(episodes):
+        _, info = env.reset(seed=seed if episode == 0 else None)
+        _, _, _, _, end_info = env.step(np.zeros(1, np.float32))
+        assert end_info["replayed"] == info["replayed"]
+        played.append((info["scenario"], info["replayed"]))
+    return played
+
+
+def test_scenario_replay_replays_the_scenarios_still_failed_and_evaluation_never_does():
+    hard = {3, 14, 15, 92}
+    env = ScenarioReplay(_Scenarios(hard), replay_prob=0.5)
+    played = _play_episodes(env, 600, seed=7)
+    replays = [scenario for scenario, replayed in played if replayed]
+    assert 0.4 < len(replays) / len(played) < 0.6
+    # only failed scenarios come back, and every one of them does; a success leaves the table
+    assert set(replays) == hard and set(env.failed) == hard
+    # ... and a scenario the agent has learned to drive stops being replayed
+    env.unwrapped.hard = {3}
+    later = [scenario for scenario, replayed in _play_episodes(env, 200, seed=8) if replayed]
+    assert set(later) <= hard and later.count(3) > 80
+    assert all(later.count(learned) <= 1 for learned in hard - {3})  # once more, then it succeeds
+    assert set(env.failed) == {3}
+    # the same seed plays the same scenarios; a scenario asked for by name is never replaced
+    assert _play_episodes(ScenarioReplay(_Scenarios(hard), 0.5), 600, seed=7) == played
+    _, info = env.reset(options={"scenario": 42})
+    assert info == {"scenario": 42, "replayed": False}
+    # training only: evaluation and the held-out report play every scenario as drawn
+    cfg = EnvConfig(id="MetaDrive-1000envs-v0", scenario_replay=0.5)
+    cfg.validate()
+    assert cfg.played().scenario_replay == 0.0 and cfg.on("MetaDrive-validation-v0").scenario_replay == 0.0
+    built = make_env(cfg)  # builds the wrapper; no engine starts before a reset
+    try:
+        assert any(isinstance(inner, ScenarioReplay) for inner in _wrappers(built))
+    finally:
+        built.close()
+    with pytest.raises(DrivelabError, match="env.scenario_replay.*not a MetaDrive env"):
+        EnvConfig(id="CartPole-v1", scenario_replay=0.5).validate()
+    with pytest.raises(DrivelabError, match=r"env.scenario_replay' must be in \[0, 1\)"):
+        EnvConfig(id="MetaDrive-1000envs-v0", scenario_replay=1.0).validate()
+
+
+def _wrappers(env: gym.Env) -> list[gym.Env]:
+    chain = [env]
+    while isinstance(chain[-1], gym.Wrapper):
+        chain.append(chain[-1].env)
+    return chain
 
 
 def _drive_straight(cfg: EnvConfig, decisions: int) -> tuple[gym.Env, list[np.ndarray]]:

@@ -26,7 +26,8 @@ from drivelab.envs.filters import apply_filters
 from drivelab.envs.metadrive import held_in_simulator
 from drivelab.envs.rewards import RewardShaping
 from drivelab.envs.supervised import SupervisedVectorEnv
-from drivelab.envs.wrappers import ActionRepeat, DifferentialDrive, DiscreteActionGrid, FixedThrottle, parse_grid
+from drivelab.envs.wrappers import (ActionRepeat, DifferentialDrive, DiscreteActionGrid, FixedThrottle, ScenarioReplay,
+                                    parse_grid)
 from drivelab.errors import DrivelabError, kill_point
 
 __all__ = ["EnvConfig", "make_env", "make_vector_env", "env_spaces", "DiscreteActionGrid", "FixedThrottle", "DifferentialDrive",
@@ -47,9 +48,10 @@ def _check_id(env_id: str) -> str:
 def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
              wrapper: Callable[[gym.Env], gym.Env] | None = None) -> gym.Env:
     """Build one environment from a validated :class:`~drivelab.config.EnvConfig`, then drivelab's
-    wrappers in this order: reward shaping (``cfg.reward``), action adapter (``cfg.action_grid``
-    or ``cfg.fixed_throttle``), action repeat (``cfg.action_repeat``, over the shaped reward; with
-    ``cfg.simulator_repeat``, MetaDrive holds the action itself: :func:`~drivelab.envs.metadrive.held_in_simulator`),
+    wrappers in this order: the replay of failed scenarios (``cfg.scenario_replay``), reward shaping
+    (``cfg.reward``), action adapter (``cfg.action_grid`` or ``cfg.fixed_throttle``), action repeat
+    (``cfg.action_repeat``, over the shaped reward; with ``cfg.simulator_repeat``, MetaDrive holds
+    the action itself: :func:`~drivelab.envs.metadrive.held_in_simulator`),
     observation filters (``cfg.obs_filters``: they see the observations the agent decides on).
 
     ``cfg.kwargs`` go to ``gym.make`` (for MetaDrive: any MetaDrive config key, e.g.
@@ -77,6 +79,8 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
     except (TypeError, ValueError, KeyError, AssertionError, gym.error.Error) as exc:
         message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise DrivelabError(f"env '{cfg.id}' could not be created with kwargs {kwargs}: {message}") from None
+    if cfg.scenario_replay:
+        env = ScenarioReplay(env, cfg.scenario_replay)
     if cfg.reward:
         task_shaping = _find_wrapper(env, RewardShaping)
         if task_shaping is not None:

@@ -49,6 +49,10 @@ class EnvConfig:
     # action_repeat x 0.1 s and per-step reward terms count once per decision. Evaluation always
     # plays the env as published, with the wrapper (EnvConfig.played).
     simulator_repeat: bool = False
+    # MetaDrive, in training only: the share of episodes that start on a scenario this env
+    # failed before (wrappers.ScenarioReplay, after Prioritized Level Replay); 0: every episode
+    # draws its scenario as usual. Evaluation never replays (EnvConfig.played).
+    scenario_replay: float = 0.0
     # Reward shaping: {term: {weight: w, ...params}} over cte, lane, native, progress
     # (drivelab.envs.rewards); replaces the env's reward.
     reward: dict[str, Any] | None = None
@@ -75,6 +79,11 @@ class EnvConfig:
             raise DrivelabError(f"config field '{where}.action_repeat' must be >= 1, got {self.action_repeat}")
         if self.simulator_repeat and registered_id(self.id) not in metadrive_ids():
             raise DrivelabError(f"config field '{where}.simulator_repeat' holds actions inside MetaDrive's simulator; "
+                                f"'{self.id}' is not a MetaDrive env")
+        if not 0.0 <= self.scenario_replay < 1.0:
+            raise DrivelabError(f"config field '{where}.scenario_replay' must be in [0, 1), got {self.scenario_replay}")
+        if self.scenario_replay and registered_id(self.id) not in metadrive_ids():
+            raise DrivelabError(f"config field '{where}.scenario_replay' replays MetaDrive scenarios; "
                                 f"'{self.id}' is not a MetaDrive env")
         if self.step_timeout is not None and not self.step_timeout > 0:
             raise DrivelabError(f"config field '{where}.step_timeout' must be > 0 seconds, got {self.step_timeout}")
@@ -108,8 +117,10 @@ class EnvConfig:
     def played(self) -> EnvConfig:
         """This config as evaluation plays it: ``simulator_repeat`` (a training speed-up that changes
         the simulator's own step) off, so a decision every ``action_repeat`` steps is held by the
-        wrapper on the env as published."""
-        return dataclasses.replace(self, simulator_repeat=False) if self.simulator_repeat else self
+        wrapper on the env as published, and ``scenario_replay`` (a training curriculum) off."""
+        if not (self.simulator_repeat or self.scenario_replay):
+            return self
+        return dataclasses.replace(self, simulator_repeat=False, scenario_replay=0.0)
 
     def resolved_step_groups(self) -> int:
         """``step_groups``, with None resolved to 1 (lockstep: on this 2-core machine groups measured

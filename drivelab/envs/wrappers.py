@@ -1,5 +1,5 @@
 """Action adapters for driving environments whose action is MetaDrive-style [steering, throttle],
-and an action repeat for any env."""
+an action repeat for any env, and a replay of failed scenarios for training on MetaDrive."""
 
 from __future__ import annotations
 
@@ -108,6 +108,61 @@ class ActionRepeat(gym.Wrapper):
             if terminated or truncated:
                 break
         return obs, total, terminated, truncated, info
+
+
+class ScenarioReplay(gym.Wrapper):
+    """Start some training episodes on scenarios the agent failed, instead of a fresh draw.
+
+    After Prioritized Level Replay (Jiang, Grefenstette & Rocktaschel 2021): with probability
+    ``replay_prob`` a reset replays a scenario whose last episode in this env ended without
+    reaching the destination (crash, off road or the step limit), else the env draws one as usual.
+    PLR scores levels by the learner's value error; here the score is the driving outcome itself,
+    which needs no critic in the worker. Among the failed scenarios, one is chosen with probability
+    proportional to its staleness (episodes since it was last played, PLR's P_C): the oldest
+    failures are tried again first, and one that now succeeds leaves the table, so the replays
+    follow what the current policy still cannot drive. ``info["replayed"]`` says whether the
+    episode is a replay (logged as ``episode/replay_rate``).
+
+    The env must report ``info["scenario"]`` and ``info["success"]`` and take
+    ``reset(options={"scenario": k})`` (drivelab's MetaDrive adapter does). A reset with a seed
+    reseeds the replay draw, so a run stays reproducible for its seed. The table lives in the env's
+    process: it starts empty in a new run, after a resume and after a worker restart.
+    """
+
+    def __init__(self, env: gym.Env, replay_prob: float):
+        super().__init__(env)
+        if not 0.0 <= replay_prob < 1.0:
+            raise DrivelabError(f"config field 'env.scenario_replay' must be in [0, 1), got {replay_prob}")
+        self.replay_prob = float(replay_prob)
+        self.failed: dict[int, int] = {}  # scenario -> this env's episode count when it last failed
+        self.episodes = 0
+        self.rng = np.random.default_rng()
+        self._scenario, self._replayed = -1, False
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+        options = dict(options or {})
+        self._replayed = "scenario" not in options and bool(self.failed) and self.rng.random() < self.replay_prob
+        if self._replayed:
+            scenarios = np.fromiter(self.failed.keys(), np.int64, len(self.failed))
+            staleness = self.episodes + 1 - np.fromiter(self.failed.values(), np.float64, len(self.failed))
+            options["scenario"] = int(self.rng.choice(scenarios, p=staleness / staleness.sum()))
+        obs, info = self.env.reset(seed=seed, options=options)
+        self._scenario = int(info["scenario"])
+        info["replayed"] = self._replayed
+        return obs, info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if terminated or truncated:
+            self.episodes += 1
+            if info["success"]:
+                self.failed.pop(self._scenario, None)
+            else:
+                self.failed[self._scenario] = self.episodes
+        info["replayed"] = self._replayed
+        return obs, reward, terminated, truncated, info
 
 
 class CruiseControl(gym.Wrapper):

@@ -25,6 +25,7 @@ DRIVING_METRICS = {
     "timeout": "timeout_rate",               # the step limit ended the episode before the destination
     "route_completion": "route_completion",
     "mean_abs_cte": "mean_abs_cte",          # metres from the lane centre, averaged over the episode
+    "replayed": "replay_rate",               # the episode replayed a failed scenario (envs.wrappers.ScenarioReplay)
 }
 
 
