@@ -102,7 +102,7 @@ def updates_per_s(algo: str, device: str, hidden: list[int], batch_size: int, se
     if algo == "sac":
         hp = sac.Params(hidden=hidden, batch_size=batch_size)
         log_alpha = torch.nn.Parameter(torch.zeros((), device=dev))
-        opt = sac.Optimizers(**make_optimizers(agent, hp)._asdict(), alpha=torch.optim.Adam([log_alpha], lr=hp.alpha_lr))
+        opt = sac.build_optimizers(agent, log_alpha, hp)
 
         def one(i: int) -> None:
             sac.update(agent, target, log_alpha, opt, batch, hp, -2.0, update_actor=i % 2 == 0)

@@ -1,6 +1,9 @@
 """What one SAC update costs at the drive recipe's shapes, per batch size, ``actor_every`` and
 ``bf16_updates`` (bfloat16 autocast, the output layers float32), as JSON.
 
+``unfused Adam``: the same update with torch's default Adam instead of the fused one drivelab's
+off-policy learners build (``drivelab.training.losses.fused_adam``).
+
 The learner's CPU per env step is (ms per update) x ``utd``; on two cores it is what keeps the
 simulators waiting (docs/results.md, "Where the time goes"). Timed on random tensors shaped as
 ``configs/drive.yaml``'s (275-d observations, 2-d actions, [128, 128] layer-norm critics, one
@@ -35,9 +38,10 @@ from drivelab.training.timing import machine
 OBS_DIM, ACT_DIM, HIDDEN = 275, 2, [128, 128]
 
 
-def ms_per_update(batch_size: int, actor_every: int, bf16: bool, updates: int) -> float:
+def ms_per_update(batch_size: int, actor_every: int, bf16: bool, unfused_adam: bool = False, *, updates: int) -> float:
     """Milliseconds per ``sac.update`` (the actor and temperature every ``actor_every``-th), in
-    the context the trainer opens around it (``update_precision``)."""
+    the context the trainer opens around it (``update_precision``); ``unfused_adam``: with torch's
+    default Adam instead of the fused one drivelab builds, for the comparison."""
     cfg = build_config({"algo": "sac", "env": {"id": "Pendulum-v1"},
                         "sac": {"hidden": HIDDEN, "critic_layer_norm": True, "batch_size": batch_size,
                                 "actor_every": actor_every, "init_alpha": 0.05, "n_step": 3,
@@ -49,6 +53,8 @@ def ms_per_update(batch_size: int, actor_every: int, bf16: bool, updates: int) -
     target = make_target(agent)
     log_alpha = torch.nn.Parameter(torch.tensor(hp.init_alpha).log())
     opt = sac.build_optimizers(agent, log_alpha, hp)
+    if unfused_adam:
+        opt = sac.Optimizers(*(torch.optim.Adam(o.param_groups[0]["params"], lr=o.param_groups[0]["lr"]) for o in opt))
     b = batch_size
     batch = ReplayBatch(obs=torch.randn(b, OBS_DIM), actions=torch.rand(b, ACT_DIM) * 2 - 1, rewards=torch.randn(b),
                         next_obs=torch.randn(b, OBS_DIM), terminated=torch.zeros(b),
@@ -65,9 +71,10 @@ def ms_per_update(batch_size: int, actor_every: int, bf16: bool, updates: int) -
     return (time.perf_counter() - started) / updates * 1e3
 
 
-def arm_name(batch_size: int, actor_every: int, bf16: bool) -> str:
+def arm_name(batch_size: int, actor_every: int, bf16: bool, unfused_adam: bool = False) -> str:
     """The JSON key of one arm, e.g. "batch 256, actor_every 2, bf16"."""
-    return f"batch {batch_size}, actor_every {actor_every}" + (", bf16" if bf16 else "")
+    return f"batch {batch_size}, actor_every {actor_every}" + (", bf16" if bf16 else "") + (
+        ", unfused Adam" if unfused_adam else "")
 
 
 def main() -> int:
@@ -78,12 +85,12 @@ def main() -> int:
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    arms = [(128, 1, False), (256, 1, False), (256, 2, False), (256, 2, True), (512, 1, False), (512, 2, False),
-            (512, 2, True)]
+    arms = [(128, 1, False), (256, 1, False), (256, 2, False), (256, 2, False, True), (256, 2, True), (512, 1, False),
+            (512, 2, False), (512, 2, True)]
     timings: dict[str, list[float]] = {arm_name(*arm): [] for arm in arms}
     for _ in range(args.repeats):  # arms interleaved, so drift of the machine hits them alike
         for arm in arms:
-            timings[arm_name(*arm)].append(ms_per_update(*arm, args.updates))
+            timings[arm_name(*arm)].append(ms_per_update(*arm, updates=args.updates))
     result = {"benchmark": "sac-update-cost", "shapes": {"obs": OBS_DIM, "act": ACT_DIM, "hidden": HIDDEN,
                                                          "critic_layer_norm": True, "torch_threads": 1},
               "machine": machine(), "ms_per_update_median": {k: round(statistics.median(v), 2) for k, v in timings.items()},

@@ -31,7 +31,7 @@ from drivelab.errors import DrivelabError
 from drivelab.training.nets import OffPolicyAgent, frozen, make_target, polyak_update
 from drivelab.training.offpolicy import (OffPolicyParams, PolicySampling, ReplayCollector, make_optimizers,
                                         update_precision)
-from drivelab.training.losses import gradient_step
+from drivelab.training.losses import fused_adam, gradient_step
 from drivelab.training.run import Run
 
 
@@ -75,7 +75,7 @@ def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -
 
 def build_optimizers(agent: OffPolicyAgent, log_alpha: torch.Tensor, hp: Params) -> Optimizers:
     """Adam for the critics (with the encoder) and the actor (:func:`make_optimizers`), and for log(alpha)."""
-    return Optimizers(**make_optimizers(agent, hp)._asdict(), alpha=torch.optim.Adam([log_alpha], lr=hp.alpha_lr))
+    return Optimizers(**make_optimizers(agent, hp)._asdict(), alpha=fused_adam([log_alpha], lr=hp.alpha_lr))
 
 
 def critic_loss(q: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
