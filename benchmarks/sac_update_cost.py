@@ -2,7 +2,8 @@
 ``bf16_updates`` (bfloat16 autocast, the output layers float32), as JSON.
 
 ``unfused Adam``: the same update with torch's default Adam instead of the fused one drivelab's
-off-policy learners build (``drivelab.training.losses.fused_adam``).
+off-policy learners build since 2026-12-02 (``drivelab.training.losses.fused_adam``). The files
+written before then timed the default Adam: to compare a CPU with theirs, read this arm.
 
 The learner's CPU per env step is (ms per update) x ``utd``; on two cores it is what keeps the
 simulators waiting (docs/results.md, "Where the time goes"). Timed on random tensors shaped as
