@@ -86,7 +86,8 @@ def fused_adam(params: Iterable[torch.nn.Parameter], lr: float) -> torch.optim.A
     elsewhere, e.g. on the meta device). On CPU torch's default Adam steps each parameter tensor
     with about ten small ops: at the drive recipe's shapes that was a fifth of a SAC update, and
     fusing it made the update 8% cheaper (``benchmarks/sac_update_cost.py``). Same algorithm
-    (Kingma & Ba 2015), rounding differs in the last bits."""
+    (Kingma & Ba 2015), rounding differs in the last bits. A resumed run keeps the Adam its
+    checkpoint was saved with: the saved param_groups carry ``fused`` (None before 2026-12-02)."""
     params = list(params)
     fused = all(p.device.type in ("cpu", "cuda") for p in params)
     return torch.optim.Adam(params, lr=lr, fused=True if fused else None)
