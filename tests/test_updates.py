@@ -16,6 +16,7 @@ from torch.distributions import Categorical
 from drivelab.algos import a2c, ddpg, grpo, ppo, reinforce, sac, td3
 from drivelab.errors import DrivelabError
 from drivelab.training.buffers import ReplayBatch
+from drivelab.training.losses import fused_adam
 from drivelab.training.nets import ActorCritic, OffPolicyAgent, Policy, limit_log_std, make_target
 from drivelab.training.offpolicy import Optimizers, update_precision
 from drivelab.training.rollout import RolloutBatch
@@ -318,6 +319,25 @@ def test_sac_update_soft_target_actor_and_temperature():
     assert log_alpha.item() == pytest.approx(np.log(0.2) + 0.5 * (target_entropy - entropy), rel=1e-5)
     assert out["loss/alpha"].item() == pytest.approx(-np.log(0.2) * (target_entropy - entropy), rel=1e-5)
     _assert_params(target, _polyak(target_before, agent, 0.1))
+
+
+def test_the_off_policy_optimisers_are_a_fused_adam_that_steps_as_the_default_one():
+    agent, _ = _agent_and_target(stochastic=True, critics=2)
+    log_alpha = torch.nn.Parameter(torch.tensor(0.2).log())
+    opt = sac.build_optimizers(agent, log_alpha, sac.Params())
+    assert all(o.param_groups[0]["fused"] for o in opt)
+    reference = copy.deepcopy(agent.critic)
+    default = torch.optim.Adam(reference.parameters(), lr=opt.critic.param_groups[0]["lr"])
+    batch = _replay_batch()
+    for _ in range(20):   # the same losses: the two Adams differ only in rounding
+        for critic, optimizer in ((agent.critic, opt.critic), (reference, default)):
+            optimizer.zero_grad()
+            critic(batch.obs, batch.actions).pow(2).mean().backward()
+            optimizer.step()
+    _assert_params(agent.critic, _params(reference))
+    # off CPU and CUDA (here the meta device) torch has no fused Adam: the default one
+    meta = torch.nn.Parameter(torch.zeros(3, device="meta"))
+    assert fused_adam([meta], lr=1e-3).param_groups[0]["fused"] is None
 
 
 @pytest.mark.parametrize("algo", ["ddpg", "td3", "sac"])

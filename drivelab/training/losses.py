@@ -93,7 +93,6 @@ def fused_adam(params: Iterable[torch.nn.Parameter], lr: float) -> torch.optim.A
     return torch.optim.Adam(params, lr=lr, fused=True if fused else None)
 
 
-
 def gradient_step(optimizer: torch.optim.Optimizer, loss: torch.Tensor,
                   clip_params: Iterable[torch.nn.Parameter] | None = None, max_grad_norm: float = float("inf")) -> torch.Tensor | None:
     """zero_grad, backward, optionally clip the global gradient norm of ``clip_params`` to
