@@ -10,7 +10,10 @@ scenarios of MetaDrive's protocol: start seeds 0-199, default traffic, determini
 episode k on scenario k. MetaDrive's PPO expert and the random policy play the same 200.
 
 The JSON has, per seed, the held-out success, crash, out-of-road and route completion, the
-training wall clock and env steps, the checkpoint's step; over seeds the mean with its 95%
+training wall clock and env steps, the checkpoint's step, the CPU and how fast it was
+(``cpu_gauge_ms``, before and after training: one SAC update at ``drive.yaml``'s shapes with
+torch's default Adam, ``benchmarks/sac_update_cost.py``'s arm "batch 256, actor_every 2, unfused
+Adam", whose cost a run's 30 minutes of decisions follow); over seeds the mean with its 95%
 confidence interval (Student's t) and the minimum. The PNG plots success on the selection
 scenarios (the in-training evaluations) against training wall-clock minutes per seed, with the
 held-out success of the chosen checkpoints and of the baselines. Every result is cached in the
@@ -24,35 +27,54 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 import time
 from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from drivelab.api import baseline_env, build_config, evaluate_baseline, evaluate_checkpoint, train
 from drivelab.config import merge_overrides, parse_value, read_yaml
 from drivelab.training.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
 from drivelab.training.plots import mean_and_ci95, read_metrics
 from drivelab.training.timing import cpu_model
+from sac_update_cost import ms_per_update  # benchmarks/sac_update_cost.py
 
 HELDOUT_ENV, EPISODES = "MetaDrive-validation-v0", 200
 METRICS = ("success_rate", "crash_rate", "out_of_road_rate", "route_completion")
 TIMEOUT = "timeout_rate"  # recorded since 2026-11-27: seeds cached before it have none
 
 
+def cpu_gauge_ms(repeats: int = 3, updates: int = 200) -> float:
+    """This CPU's speed as the median milliseconds of one SAC update at the drive recipe's shapes
+    with torch's default Adam on one thread (the arm "batch 256, actor_every 2, unfused Adam" of
+    ``sac_update_cost.py``, comparable with every file it wrote). One CPU model name: 5-16 ms."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return round(statistics.median(ms_per_update(256, 2, False, unfused_adam=True, updates=updates)
+                                       for _ in range(repeats)), 2)
+    finally:
+        torch.set_num_threads(threads)
+
+
 def train_seed(config: str, seed: int, run_dir: Path, overrides: dict | None = None) -> dict:
-    """Train (or finish) one seed; its wall clock, steps and CPU are kept in RUN/training.json (30
-    minutes hold ~3x fewer steps on a CPU ~3x slower: docs/results.md, "What these numbers promise")."""
+    """Train (or finish) one seed; its wall clock, steps, CPU and the CPU's speed before and after
+    (:func:`cpu_gauge_ms`) are kept in RUN/training.json (30 minutes hold ~3x fewer steps on a CPU
+    ~3x slower: docs/results.md, "What these numbers promise")."""
     record = run_dir / "training.json"
     if record.is_file():
         return json.loads(record.read_text())
     cfg = build_config(merge_overrides({**read_yaml(config), "seed": seed, "run_dir": str(run_dir)}, overrides or {}))
+    gauge_before = cpu_gauge_ms()
     started = time.perf_counter()
     train(cfg, resume=bool(list_checkpoints(run_dir)))
-    result = {"minutes": round((time.perf_counter() - started) / 60, 2),
-              "steps": checkpoint_step(resolve_checkpoint(run_dir)), "cpu": cpu_model()}
+    minutes = round((time.perf_counter() - started) / 60, 2)
+    result = {"minutes": minutes, "steps": checkpoint_step(resolve_checkpoint(run_dir)), "cpu": cpu_model(),
+              "cpu_gauge_ms": [gauge_before, cpu_gauge_ms()]}
     record.write_text(json.dumps(result) + "\n")
     return result
 
