@@ -34,13 +34,12 @@ from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from drivelab.api import baseline_env, build_config, evaluate_baseline, evaluate_checkpoint, train
 from drivelab.config import merge_overrides, parse_value, read_yaml
 from drivelab.training.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
 from drivelab.training.plots import mean_and_ci95, read_metrics
-from drivelab.training.timing import cpu_model
+from drivelab.training.timing import UpdateSection, cpu_model
 from sac_update_cost import ms_per_update  # benchmarks/sac_update_cost.py
 
 HELDOUT_ENV, EPISODES = "MetaDrive-validation-v0", 200
@@ -52,13 +51,9 @@ def cpu_gauge_ms(repeats: int = 3, updates: int = 200) -> float:
     """This CPU's speed as the median milliseconds of one SAC update at the drive recipe's shapes
     with torch's default Adam on one thread (the arm "batch 256, actor_every 2, unfused Adam" of
     ``sac_update_cost.py``, comparable with every file it wrote). One CPU model name: 5-16 ms."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with UpdateSection(threads=1):  # sets one torch thread, restores the caller's on exit
         return round(statistics.median(ms_per_update(256, 2, False, unfused_adam=True, updates=updates)
                                        for _ in range(repeats)), 2)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def train_seed(config: str, seed: int, run_dir: Path, overrides: dict | None = None) -> dict:
