@@ -24,7 +24,7 @@ from pathlib import Path
 
 from drive_recipe import EPISODES as HELDOUT_EPISODES, HELDOUT_ENV  # the protocol whose `best` this scores
 from drivelab.api import evaluate_checkpoint
-from drivelab.training.checkpoint import checkpoint_step, list_checkpoints
+from drivelab.training.outputs.checkpoint import checkpoint_step, list_checkpoints
 
 
 def cached(path: Path, key: str, compute) -> dict:

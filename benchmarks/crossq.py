@@ -36,8 +36,8 @@ def train_arm(job: tuple[str, int, int, str]) -> dict:
 
     torch.set_num_threads(1)
     from drivelab.api import build_config, evaluate_checkpoint, train
-    from drivelab.training.checkpoint import checkpoint_step, list_checkpoints
-    from drivelab.training.plots import read_metrics
+    from drivelab.training.outputs.checkpoint import checkpoint_step, list_checkpoints
+    from drivelab.training.outputs.plots import read_metrics
 
     arm, seed, steps, tmp = job
     run_dir = Path(tmp) / f"{arm.replace(' ', '_')}_{seed}"
@@ -66,9 +66,9 @@ def update_ms(crossq: bool, repeats: int = 7, updates: int = 100) -> float:
     import torch
 
     from drivelab.algos import td3
-    from drivelab.training.buffers import ReplayBatch
-    from drivelab.training.nets import OffPolicyAgent, make_target
-    from drivelab.training.offpolicy import make_optimizers
+    from drivelab.training.learning.replay_buffer import ReplayBatch
+    from drivelab.training.learning.offpolicy_nets import OffPolicyAgent, make_target
+    from drivelab.training.learning.optim import make_optimizers
 
     torch.set_num_threads(1)
     torch.manual_seed(0)

@@ -37,9 +37,10 @@ import numpy as np
 
 from drivelab.api import baseline_env, build_config, evaluate_baseline, evaluate_checkpoint, train
 from drivelab.config import merge_overrides, parse_value, read_yaml
-from drivelab.training.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
-from drivelab.training.plots import mean_and_ci95, read_metrics
-from drivelab.training.timing import UpdateSection, cpu_model
+from drivelab.training.outputs.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
+from drivelab.training.outputs.statistics import mean_and_ci95
+from drivelab.training.outputs.plots import read_metrics
+from drivelab.training.run.timing import UpdateSection, cpu_model
 from sac_update_cost import ms_per_update  # benchmarks/sac_update_cost.py
 
 HELDOUT_ENV, EPISODES = "MetaDrive-validation-v0", 200

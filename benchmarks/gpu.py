@@ -32,10 +32,10 @@ import gymnasium as gym
 import torch
 
 from drivelab.algos import sac, td3
-from drivelab.training.buffers import ReplayBatch
-from drivelab.training.nets import OffPolicyAgent, make_target
-from drivelab.training.offpolicy import make_optimizers
-from drivelab.training.plots import last_metrics
+from drivelab.training.learning.replay_buffer import ReplayBatch
+from drivelab.training.learning.offpolicy_nets import OffPolicyAgent, make_target
+from drivelab.training.learning.optim import make_optimizers
+from drivelab.training.outputs.plots import last_metrics
 from training import report  # benchmarks/training.py
 
 ALGOS = ("reinforce", "a2c", "ppo", "grpo", "ddpg", "td3", "sac")

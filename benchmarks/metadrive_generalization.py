@@ -37,7 +37,7 @@ import time
 from pathlib import Path
 
 from drivelab.api import build_config, checkpoint_config, evaluate_baseline, play, policy_from_checkpoint, train
-from drivelab.training.checkpoint import checkpoint_step, list_checkpoints, load_checkpoint
+from drivelab.training.outputs.checkpoint import checkpoint_step, list_checkpoints, load_checkpoint
 from drivelab.config import EnvConfig, read_yaml
 
 HELDOUT_ENV = "MetaDrive-validation-v0"

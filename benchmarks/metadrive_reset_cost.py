@@ -23,7 +23,7 @@ import numpy as np
 from drivelab.api import build_config
 from drivelab.config import read_yaml
 from drivelab.envs import make_env
-from drivelab.training.timing import machine
+from drivelab.training.run.timing import machine
 from training import report  # benchmarks/training.py
 
 

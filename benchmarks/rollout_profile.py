@@ -28,8 +28,8 @@ import drivelab.algos.ppo as ppo
 from drivelab.api import build_config, train
 from drivelab.config import read_yaml, set_dotted
 from drivelab.envs.groups import EnvGroups
-from drivelab.training.episodes import EpisodeTracker
-from drivelab.training.rollout import RolloutCollector
+from drivelab.training.outputs.episodes import EpisodeTracker
+from drivelab.training.collection.rollout import RolloutCollector
 from training import apply_overrides, report  # benchmarks/training.py
 
 SECONDS: dict[str, float] = collections.defaultdict(float)

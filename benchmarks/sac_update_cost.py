@@ -2,7 +2,7 @@
 ``bf16_updates`` (bfloat16 autocast, the output layers float32), as JSON.
 
 ``unfused Adam``: the same update with torch's default Adam instead of the fused one drivelab's
-off-policy learners build since 2026-12-02 (``drivelab.training.losses.fused_adam``). The files
+off-policy learners build since 2026-12-02 (``drivelab.training.learning.optim.fused_adam``). The files
 written before then timed the default Adam: to compare a CPU with theirs, read this arm.
 
 The learner's CPU per env step is (ms per update) x ``utd``; on two cores it is what keeps the
@@ -31,10 +31,10 @@ import torch
 
 from drivelab.algos import sac
 from drivelab.api import build_config
-from drivelab.training.buffers import ReplayBatch
-from drivelab.training.nets import make_target
-from drivelab.training.offpolicy import update_precision
-from drivelab.training.timing import machine
+from drivelab.training.learning.replay_buffer import ReplayBatch
+from drivelab.training.learning.offpolicy_nets import make_target
+from drivelab.training.learning.precision import update_precision
+from drivelab.training.run.timing import machine
 
 OBS_DIM, ACT_DIM, HIDDEN = 275, 2, [128, 128]
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from drivelab import api
 from drivelab.tools.drivers import DRIVERS_DIR, card_metrics, write_driver
-from drivelab.training.checkpoint import checkpoint_step
+from drivelab.training.outputs.checkpoint import checkpoint_step
 
 PROTOCOL = ("MetaDrive's generalization protocol: trained on MetaDrive-1000envs (start seed 1000, 1000 "
             "scenarios); evaluated deterministically on the 200 unseen scenarios of start seeds 0-199 "

@@ -17,7 +17,7 @@ For each number of env processes N (default 1, 2 and 4), on the env of a PPO con
   ``drivelab_groups`` also ``raw_groups``: random actions with the envs stepping as N groups);
 * ``drivelab``: drivelab's PPO as the config sets it up, with ``env.step_groups`` unset (the drive
   recipe sets ``ppo.act_in_workers``: each env process plays the rollout with a copy of the
-  policy, drivelab/training/worker_rollouts.py; without it the trainer steps the envs together);
+  policy, drivelab/training/collection/worker_rollouts.py; without it the trainer steps the envs together);
 * ``drivelab_groups``: drivelab's PPO with the trainer stepping the envs (``act_in_workers`` off)
   as ``env.step_groups: N``, one step group per env (drivelab.envs.groups: each group steps
   while the trainer chooses the others' actions);
@@ -71,10 +71,10 @@ from pathlib import Path
 import torch
 
 from drivelab.api import build_config, load_policy, train
-from drivelab.training.checkpoint import checkpoint_step, resolve_checkpoint
+from drivelab.training.outputs.checkpoint import checkpoint_step, resolve_checkpoint
 from drivelab.config import read_yaml, set_dotted
 from drivelab.envs import make_env
-from drivelab.training.nets import activation
+from drivelab.training.learning.layers import activation
 from training import apply_overrides, env_steps_per_second, report  # benchmarks/training.py
 
 

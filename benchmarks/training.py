@@ -29,7 +29,7 @@ import torch
 from gymnasium.vector import AutoresetMode
 
 from drivelab.api import build_config, evaluate_checkpoint, train
-from drivelab.training.checkpoint import checkpoint_step
+from drivelab.training.outputs.checkpoint import checkpoint_step
 from drivelab.config import parse_value, read_yaml, set_dotted
 from drivelab.envs.groups import EnvGroups
 

@@ -17,7 +17,6 @@ import json
 import statistics
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 PROBE = """
@@ -58,7 +57,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.starts < 2:
         parser.error("--starts must be 2 or more: the first start and the later ones are reported apart")
-    from drivelab.training.timing import machine
+    from drivelab.training.run.timing import machine
 
     rows = {}
     for method in ("spawn", "forkserver"):

@@ -32,21 +32,36 @@ import gymnasium as gym
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 from drivelab.algos import ALGORITHMS, AlgoSpec
-from drivelab.config import (RESUMABLE_FIELDS, EnvConfig, TrainConfig, config_to_dict, experiment_differences,
-                             merge_overrides, read_yaml, resolve_config_file)
+from drivelab.config import (
+    RESUMABLE_FIELDS,
+    EnvConfig,
+    TrainConfig,
+    config_to_dict,
+    experiment_differences,
+    merge_overrides,
+    read_yaml,
+    resolve_config_file,
+)
 from drivelab.envs import env_spaces
 from drivelab.envs.supervised import error_line
 from drivelab.errors import DrivelabError, TrainingCrashed
-from drivelab.tools.policies import (  # noqa: F401  (re-exported: the API's loading and evaluation)
-    TrainedPolicy, baseline_env, build_config, checkpoint_config, evaluate_baseline, evaluate_checkpoint, load,
-    load_policy, policy_from_checkpoint)
 from drivelab.tools.drivers import model_card, shipped_drivers  # noqa: F401  (re-exported: the shipped drivers)
-from drivelab.training.checkpoint import Checkpoint, checkpoint_step, list_checkpoints, load_checkpoint
-from drivelab.training.evaluation import EvalResult, play, run_episodes  # noqa: F401  (EvalResult re-exported)
-from drivelab.training.plots import last_metrics
+from drivelab.tools.policies import (  # noqa: F401  (re-exported: the API's loading and evaluation)
+    TrainedPolicy,
+    baseline_env,
+    build_config,
+    checkpoint_config,
+    evaluate_baseline,
+    evaluate_checkpoint,
+    load,
+    load_policy,
+    policy_from_checkpoint,
+)
+from drivelab.training.collection.evaluation import EvalResult, play, run_episodes  # noqa: F401  (EvalResult re-exported)
+from drivelab.training.outputs.checkpoint import Checkpoint, checkpoint_step, list_checkpoints, load_checkpoint
+from drivelab.training.outputs.plots import last_metrics
 from drivelab.training.run import Callback, Run, RunEvent  # noqa: F401  (RunEvent re-exported)
 from drivelab.version import __version__
-
 
 
 def default_run_dir(cfg: TrainConfig) -> str:
@@ -116,41 +131,86 @@ def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | 
     traceback to ``RUN/error.log`` and is raised as :class:`~drivelab.errors.TrainingCrashed`.
     """
     requeue = resume == "auto"
-    if isinstance(algo, TrainConfig):
-        cfg = algo
-        if requeue:
-            _check_requeue(cfg)
-    else:
-        env = env_id_of(env) if env is not None and not isinstance(env, (str, Mapping)) else env
-        arguments = {"algo": algo, "env": {"id": env} if isinstance(env, str) else env, "steps": steps, "seed": seed,
-                     "run_dir": None if run_dir is None else str(run_dir), **overrides, "env.num_envs": num_envs}
-        arguments = {key: value for key, value in arguments.items() if value is not None}
-        cfg = train_config(arguments, config, resume=run_dir if resume is True else None, if_exists=requeue,
-                           algorithms=algorithms)
+    cfg = _config_of_call(algo, env, steps=steps, seed=seed, num_envs=num_envs, run_dir=run_dir, config=config,
+                          resume=resume, requeue=requeue, overrides=overrides, algorithms=algorithms)
     spec = algorithms[cfg.algo]
     if cfg.run_dir is None:
         cfg.run_dir = default_run_dir(cfg)
     if requeue:  # continue what the directory holds, if anything
-        resume = (Path(cfg.run_dir) / "config.yaml").is_file()
-        finished = list_checkpoints(cfg.run_dir) and load_checkpoint(cfg.run_dir).step >= cfg.steps
-        if resume and finished:
+        resume, finished = _requeue_status(cfg)
+        if finished:
             return TrainResult(Path(cfg.run_dir), last_metrics(cfg.run_dir))
     checkpoint = _checkpoint_to_resume(cfg) if resume else None
+    _check_run_dir_is_free(cfg, checkpoint)
+    _check_env_and_network(cfg, spec)
+    _connect_ray_if_used(cfg)
+    run = Run(cfg, resume_from=checkpoint, progress=progress, callback=callback)
+    _train_keeping_evidence(spec, cfg, run)
+    metrics = last_metrics(run.dir)
+    if not any(name.startswith("loss/") for name in metrics):
+        print(f"drivelab: warning: the run ended at step {run.step} without a logged update (no loss/* metric): "
+              "it has not learned; train for more steps", file=sys.stderr)
+    return TrainResult(run.dir, metrics)
+
+
+def _config_of_call(algo: str | TrainConfig | None, env: str | Mapping[str, Any] | Callable[..., gym.Env] | None, *,
+                    steps: int | None, seed: int | None, num_envs: int | None, run_dir: str | Path | None,
+                    config: str | Path | None, resume: bool | str, requeue: bool, overrides: Mapping[str, Any],
+                    algorithms: Mapping[str, AlgoSpec]) -> TrainConfig:
+    """The config that :func:`train`'s arguments describe: a :class:`TrainConfig` as given
+    (checked against its run directory when requeued), or one built from the algorithm name,
+    the env and the keyword fields by :func:`train_config`, as the CLI builds it."""
+    if isinstance(algo, TrainConfig):
+        if requeue:
+            _check_requeue(algo)
+        return algo
+    env = env_id_of(env) if env is not None and not isinstance(env, (str, Mapping)) else env
+    arguments = {"algo": algo, "env": {"id": env} if isinstance(env, str) else env, "steps": steps, "seed": seed,
+                 "run_dir": None if run_dir is None else str(run_dir), **overrides, "env.num_envs": num_envs}
+    arguments = {key: value for key, value in arguments.items() if value is not None}
+    return train_config(arguments, config, resume=run_dir if resume is True else None, if_exists=requeue,
+                        algorithms=algorithms)
+
+
+def _requeue_status(cfg: TrainConfig) -> tuple[bool, bool]:
+    """For ``resume="auto"``: (whether ``cfg.run_dir`` holds a run to continue, whether that run
+    has already reached ``cfg.steps``, so that a requeued command has nothing left to do)."""
+    exists = (Path(cfg.run_dir) / "config.yaml").is_file()
+    reached = list_checkpoints(cfg.run_dir) and load_checkpoint(cfg.run_dir).step >= cfg.steps
+    return exists, bool(exists and reached)
+
+
+def _check_run_dir_is_free(cfg: TrainConfig, checkpoint: Checkpoint | None) -> None:
+    """A run that does not continue a checkpoint must not train into a directory that holds one."""
     if checkpoint is None and any(checkpoint_step(p) > 0 for p in list_checkpoints(cfg.run_dir)):
         raise DrivelabError(f"run directory {cfg.run_dir} already holds a run; use --resume {cfg.run_dir} "
                             "(or --resume-if-exists) or another --run-dir")
-    # Fail on a bad env id, env kwargs or an unsupported action space before a run directory exists.
+
+
+def _check_env_and_network(cfg: TrainConfig, spec: AlgoSpec) -> None:
+    """Pre-flight: fail on a bad env id, env kwargs, an unsupported action space or a network that
+    does not fit the observations before a run directory exists."""
     obs_space, act_space = env_spaces(cfg.env)
     try:
         spec.build_policy(cfg, obs_space, act_space)
     except RuntimeError as exc:  # e.g. an image cropped smaller than the CNN's kernels
         raise DrivelabError(f"the {cfg.algo} network does not fit the observation space {obs_space}: "
                             f"{str(exc).strip().splitlines()[0]}") from None
+
+
+def _connect_ray_if_used(cfg: TrainConfig) -> None:
+    """Join the Ray cluster (``cfg.ray_address``) when the env or the evaluation runs on Ray."""
     if "ray" in (cfg.env.backend, cfg.eval.backend):
         from drivelab.envs.ray_backend import connect
 
         connect(cfg.ray_address)
-    run = Run(cfg, resume_from=checkpoint, progress=progress, callback=callback)
+
+
+def _train_keeping_evidence(spec: AlgoSpec, cfg: TrainConfig, run: Run) -> None:
+    """Run the algorithm's training loop and close the run, however it ends: Ctrl-C or SIGTERM
+    checkpoints the step reached and goes on as ``KeyboardInterrupt``; a :class:`DrivelabError`
+    passes through; any other exception writes ``RUN/error.log`` and becomes
+    :class:`~drivelab.errors.TrainingCrashed`, the latest checkpoint left as it was."""
     interrupted = False
     try:
         with stop_signals():
@@ -169,11 +229,6 @@ def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | 
                               f"the latest checkpoint is intact: continue with drivelab train --resume {run.dir}") from exc
     finally:
         run.close(interrupted)
-    metrics = last_metrics(run.dir)
-    if not any(name.startswith("loss/") for name in metrics):
-        print(f"drivelab: warning: the run ended at step {run.step} without a logged update (no loss/* metric): "
-              "it has not learned; train for more steps", file=sys.stderr)
-    return TrainResult(run.dir, metrics)
 
 
 def env_id_of(env: Any) -> str:

@@ -31,7 +31,7 @@ from drivelab.envs.supervised import error_line
 from drivelab.errors import DrivelabError, TrainingCrashed
 from drivelab.tools.baselines import BASELINES
 from drivelab.tools.tables import format_evaluation, format_evaluations
-from drivelab.training.checkpoint import checkpoint_step
+from drivelab.training.outputs.checkpoint import checkpoint_step
 from drivelab.version import __version__
 
 
@@ -285,14 +285,14 @@ def _local_run(path: str, tracking_uri: str | None, into: str | None = None) -> 
     """``mlflow:RUN_ID`` -> a local run directory fetched from the run's artifacts; other paths as they are."""
     if not path.startswith("mlflow:"):
         return path
-    from drivelab.training.tracking import fetch_mlflow_run
+    from drivelab.training.outputs.tracking import fetch_mlflow_run
 
     return str(fetch_mlflow_run(path, tracking_uri, Path(into or Path("runs") / f"mlflow-{path.split(':', 1)[1]}")))
 
 
 def _recorder(args: argparse.Namespace):
     """The video recorder that --video / --video-dir ask for, or None."""
-    from drivelab.training.video import Recorder
+    from drivelab.training.outputs.video import Recorder
 
     if args.video and args.video_dir:
         raise DrivelabError("give --video or --video-dir, not both")
@@ -342,7 +342,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from drivelab.training.plots import plot_runs
+    from drivelab.training.outputs.plots import plot_runs
 
     out = args.out or (Path(args.runs[0]) / "curves.png" if len(args.runs) == 1 else "curves.png")
     print(f"wrote {plot_runs(args.runs, out, args.metric, args.window, args.x)}")

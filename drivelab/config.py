@@ -25,8 +25,8 @@ import math
 import os
 import re
 import sys
-from dataclasses import dataclass, field
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -89,9 +89,9 @@ class TrainConfig:
     # Intra-op threads for torch. 1 is fastest when env subprocesses share a few cores.
     torch_threads: int = 1
     # Intra-op threads inside gradient updates (None: torch_threads). The env workers wait
-    # while the trainer updates, so the update may use every core this run has to itself (2 on
-    # a 2-core machine: PPO's update ~1.3x faster). Other float results, so another random stream
-    # than with None; keep None when other jobs share the cores.
+    # while the trainer updates, so the update may use every core this run has to itself
+    # (docs/results.md, Throughput of PPO on MetaDrive). Other float results, so another random
+    # stream than with None; keep None when other jobs share the cores.
     update_threads: int | None = None
     device: str = "cpu"               # cpu, cuda[:N], or auto (cuda when torch sees one)
     checkpoint_every: int = 50_000
@@ -275,7 +275,7 @@ def read_yaml(path: str | Path) -> dict:
 
 # Hyperparameters that drivelab no longer has, with the value that meant "off": configs saved in
 # run directories and checkpoints by earlier versions still load when they left them off.
-RETIRED_FIELDS: dict[str, dict[str, Any]] = {"ppo": {"overlap_update": False}}  # removed in 0.4
+RETIRED_FIELDS: dict[str, dict[str, Any]] = {"ppo": {"overlap_update": False}}
 
 
 def _without_retired(algo: str, params: Any, where: str) -> Any:
@@ -297,7 +297,7 @@ def parse_config(data: dict, algo_params: Mapping[str, type], where: str = "conf
     """
     data = dict(data)
     env = data.get("env")
-    if isinstance(env, dict) and "vectorization" in env:  # configs saved before 0.3 (run dirs, --resume)
+    if isinstance(env, dict) and "vectorization" in env:  # backend's old name, in saved configs (run dirs, --resume)
         data["env"] = {("backend" if k == "vectorization" else k): v for k, v in env.items()}
     algo = data.get("algo", TrainConfig.algo)
     if algo not in algo_params:

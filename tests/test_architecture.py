@@ -10,7 +10,7 @@ from safetensors.torch import load_file
 
 from drivelab.algos import ALGORITHMS
 from drivelab.api import build_config, train
-from drivelab.training.checkpoint import list_checkpoints, resolve_checkpoint
+from drivelab.training.outputs.checkpoint import list_checkpoints, resolve_checkpoint
 
 PACKAGE = Path(__file__).resolve().parent.parent / "drivelab"
 
@@ -20,7 +20,11 @@ LAYERS = (
     ("drivelab.errors", "drivelab.version"),
     ("drivelab.envs",),          # environments, wrappers, vectorisation, the env config
     ("drivelab.config",),        # the whole run's config
-    ("drivelab.training",),      # what every algorithm uses: run services, collectors, nets, losses
+    # what every algorithm uses, in four rooms (drivelab/training/__init__.py)
+    ("drivelab.training", "drivelab.training.learning"),  # returns, losses, optimisers, nets, storage
+    ("drivelab.training.outputs",),     # episode statistics, checkpoints, metrics, plots, videos
+    ("drivelab.training.collection",),  # collectors, exploration, worker rollouts, evaluation episodes
+    ("drivelab.training.run",),         # Run and its services
     ("drivelab.algos",),         # one file per algorithm, and the registry
     ("drivelab.tools",),         # around runs: loading policies, baselines, export, report, sweep
     ("drivelab.api",),           # the Python face
@@ -29,10 +33,12 @@ LAYERS = (
 
 
 def _layer(module: str) -> int:
-    for level, prefixes in enumerate(LAYERS):
-        if module in prefixes or any(module.startswith(p + ".") for p in prefixes if p != "drivelab"):
-            return level
-    raise AssertionError(f"{module} belongs to no layer: add its folder to LAYERS")
+    """The layer of the longest prefix that names ``module`` or a package above it."""
+    matches = [(len(p), level) for level, prefixes in enumerate(LAYERS) for p in prefixes
+               if module == p or (p not in ("drivelab", "drivelab.training") and module.startswith(p + "."))]
+    if not matches:
+        raise AssertionError(f"{module} belongs to no layer: add its folder to LAYERS")
+    return max(matches)[1]
 
 
 def _module_name(path: Path, package: Path) -> str:
@@ -129,6 +135,48 @@ def test_imports_run_only_down_the_layers():
 def test_the_package_root_holds_only_the_faces_and_the_base():
     root = sorted(p.stem for p in PACKAGE.glob("*.py"))
     assert root == ["__init__", "__main__", "api", "cli", "config", "errors", "version"], root
+
+
+def test_every_training_module_lives_in_a_room():
+    loose = sorted(p.name for p in (PACKAGE / "training").glob("*.py") if p.name != "__init__.py")
+    assert loose == [], loose
+
+
+def test_the_layer_of_a_module_is_its_innermost_room():
+    assert _layer("drivelab.training.run.timing") > _layer("drivelab.training.collection.rollout") > \
+        _layer("drivelab.training.outputs.checkpoint") > _layer("drivelab.training.learning.losses") > _layer("drivelab.config")
+    with pytest.raises(AssertionError, match="belongs to no layer"):
+        _layer("drivelab.training.newroom.x")
+
+
+MAX_CLASS_LINES, MAX_FUNCTION_LINES = 150, 60
+
+
+def _oversized(source: str, where: str) -> list[str]:
+    """Classes over MAX_CLASS_LINES and functions (methods included) over MAX_FUNCTION_LINES,
+    counted from the ``def``/``class`` line to the last line of the body."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        limit = (MAX_CLASS_LINES if isinstance(node, ast.ClassDef) else
+                 MAX_FUNCTION_LINES if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) else None)
+        if limit is not None and node.end_lineno - node.lineno + 1 > limit:
+            found.append(f"{where}:{node.lineno} {node.name} ({node.end_lineno - node.lineno + 1} lines > {limit})")
+    return found
+
+
+def test_no_class_over_150_lines_and_no_function_over_60():
+    found = [line for path in sorted(PACKAGE.rglob("*.py"))
+             for line in _oversized(path.read_text(), str(path.relative_to(PACKAGE.parent)))]
+    assert found == [], found
+
+
+def test_the_size_check_sees_methods_and_classes():
+    def body(n, indent):
+        return "".join(f"{indent}x{i} = {i}\n" for i in range(n))
+    # A: 1 + 61 + 120 lines, its method f: 1 + 60; B: 1 + 60 lines, its method g: 1 + 59 (at the limit)
+    source = "class A:\n    def f(self):\n" + body(60, " " * 8) + body(120, " " * 4) + \
+             "class B:\n    def g(self):\n" + body(59, " " * 8)
+    assert sorted(line.split()[1] for line in _oversized(source, "m.py")) == ["A", "f"]
 
 
 def test_the_import_walker_sees_function_level_and_relative_imports(tmp_path):

@@ -1,5 +1,5 @@
 """Off-policy training with the env workers acting (``act_in_workers``): the workers play chunks
-with a copy of the actor while the learner updates (drivelab.training.offpolicy.ReplayCollector).
+with a copy of the actor while the learner updates (drivelab.training.collection.replay.ReplayCollector).
 
 The replay buffer of the final checkpoint is read back and checked transition by transition on
 ``flaky_env:Tally-v0``, whose observations name the episode and the step within it.
@@ -12,7 +12,7 @@ import torch
 from safetensors.torch import load_file
 
 from drivelab.api import build_config, train
-from drivelab.training.checkpoint import list_checkpoints, load_checkpoint
+from drivelab.training.outputs.checkpoint import list_checkpoints, load_checkpoint
 from flaky_env import importable_env
 from processes import run_drivelab
 

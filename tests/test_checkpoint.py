@@ -3,7 +3,8 @@ import json
 import pytest
 import torch
 
-from drivelab.training.checkpoint import list_checkpoints, load_checkpoint, resolve_checkpoint, restore, save_checkpoint
+from drivelab.training.outputs.checkpoint import (list_checkpoints, load_checkpoint, resolve_checkpoint, restore,
+                                                  save_checkpoint)
 from drivelab.errors import DrivelabError
 
 

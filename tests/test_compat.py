@@ -31,8 +31,8 @@ def _cli_json(capsys, *argv: str) -> dict:
 def test_a_v0_3_checkpoint_evaluates_as_it_did(name, capsys):
     row = _cli_json(capsys, "eval", str(DATA / name), "--episodes", "3", "--num-envs", "1", "--json")
     # rel 1e-6, not exact: the same weights give the same actions up to the float32 rounding of the
-    # CPU's matmul kernels (an AMX Xeon, 2026-12-01: SAC's mean return off by 1.3e-9 relative,
-    # its std by 1.8e-8); a checkpoint read wrongly is off by far more
+    # CPU's matmul kernels, which differs between CPUs (by ~1e-9 relative in the mean return); a
+    # checkpoint read wrongly is off by far more
     assert {key: row[key] for key in EXPECTED[name]} == pytest.approx(EXPECTED[name], rel=1e-6)
 
 

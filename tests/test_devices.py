@@ -13,11 +13,13 @@ from torch import nn
 
 from drivelab.algos import a2c, ddpg, grpo, ppo, sac, td3
 from drivelab.algos.grpo import GroupBatch
-from drivelab.training.buffers import ReplayBatch
-from drivelab.training.nets import ActorCritic, OffPolicyAgent, make_target
-from drivelab.training.offpolicy import make_optimizers
-from drivelab.training.rollout import RolloutBatch
-from drivelab.training.timing import machine, native_bf16
+from drivelab.training.learning.replay_buffer import ReplayBatch
+from drivelab.training.learning.policy_nets import ActorCritic
+from drivelab.training.learning.offpolicy_nets import OffPolicyAgent, make_target
+from drivelab.training.learning.optim import make_optimizers
+from drivelab.training.learning.rollout_buffers import RolloutBatch
+from drivelab.training.run.timing import machine
+from drivelab.training.learning.precision import native_bf16
 
 META = torch.device("meta")
 OBS, ACT, B = gym.spaces.Box(-1, 1, (6,)), gym.spaces.Box(-2, 2, (2,)), 16
@@ -78,7 +80,7 @@ def test_a_checkpoint_from_a_gpu_run_loads_evaluates_exports_and_resumes_on_the_
 
     import drivelab
     from drivelab.cli import main
-    from drivelab.training.checkpoint import checkpoint_step, resolve_checkpoint
+    from drivelab.training.outputs.checkpoint import checkpoint_step, resolve_checkpoint
 
     run = tmp_path / "gpu_run"
     drivelab.train("ppo", "CartPole-v1", steps=256, seed=0, run_dir=run, progress=False, ppo={"num_steps": 128})

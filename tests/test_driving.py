@@ -14,7 +14,7 @@ from drivelab.envs import make_env
 from drivelab.envs.filters import apply_filters, binarize, crop, resize, sobel
 from drivelab.envs.rewards import cte_reward, idle_penalty, lane_reward, progress_reward, score, validate_reward_config
 from drivelab.envs.wrappers import CruiseControl, DifferentialDrive, FixedThrottle, wheel_velocities
-from drivelab.training.episodes import episode_info
+from drivelab.training.outputs.episodes import episode_info
 from drivelab.errors import DrivelabError
 
 
@@ -204,7 +204,7 @@ def _check_top_down_task():
     try:
         obs, _ = env.reset(seed=0)
         assert env.observation_space.shape == (84, 84, 5) and obs.dtype == np.uint8
-        from drivelab.training.nets import CNNEncoder
+        from drivelab.training.learning.layers import CNNEncoder
 
         assert CNNEncoder(env.observation_space).out_dim == 512
     finally:
@@ -221,7 +221,7 @@ def test_driving_tasks_train_with_each_family(algo, env, params, tmp_path):
     from safetensors.torch import load_file
 
     from drivelab.api import build_config, train
-    from drivelab.training.checkpoint import list_checkpoints
+    from drivelab.training.outputs.checkpoint import list_checkpoints
 
     cfg = build_config({"algo": algo, "steps": 256, "seed": 0, "run_dir": str(tmp_path / algo),
                         "env": {"num_envs": 2, **env}, algo: params})
@@ -270,11 +270,10 @@ def test_reward_plot_and_compare_cli(run_cli, tmp_path):
     assert bad.returncode == 2 and "missing.yaml" in bad.stderr and "Traceback" not in bad.stderr
 
 
-# PPO learning lane following (configs/ppo_lanefollow.yaml) is measured by a benchmark, no longer
-# by a test: `python benchmarks/training.py learn --config configs/ppo_lanefollow.yaml --steps 20000
-# --seed 0 --episodes 10` (benchmarks/results/ppo_lanefollow_20k.json: route 0.23, |CTE| 0.53 m;
-# random: route 0.03). As a test it took 3.5 minutes of the suite's two cores on a 2 GHz CPU. PPO
-# learning on MetaDrive is the test below; the task trains with each algorithm family in
+# PPO learning lane following (configs/ppo_lanefollow.yaml) is measured by a benchmark, not by a
+# test (minutes of the suite's two cores): `python benchmarks/training.py learn --config
+# configs/ppo_lanefollow.yaml --steps 20000 --seed 0 --episodes 10`. PPO learning on MetaDrive is
+# the test below; the task trains with each algorithm family in
 # test_driving_tasks_train_with_each_family.
 
 

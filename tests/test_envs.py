@@ -66,7 +66,7 @@ def test_a_metadrive_video_frame_follows_the_car_heading_up(fresh_process):
 
 
 def _check_video_frame():
-    from drivelab.training.video import overlay
+    from drivelab.training.outputs.video import overlay
 
     env = make_env(EnvConfig(id="MetaDrive-validation-v0"), render_mode="rgb_array")
     try:

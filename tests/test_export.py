@@ -10,7 +10,7 @@ import torch
 import drivelab
 from drivelab.config import EnvConfig
 from drivelab.tools.export import DeployedPolicy
-from drivelab.training.nets import ActorCritic
+from drivelab.training.learning.policy_nets import ActorCritic
 
 
 def test_notebook_style_train_load_act_evaluate(tmp_path):

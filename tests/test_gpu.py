@@ -11,7 +11,7 @@ import torch
 
 import drivelab
 from drivelab.cli import main
-from drivelab.training.checkpoint import checkpoint_step, list_checkpoints
+from drivelab.training.outputs.checkpoint import checkpoint_step, list_checkpoints
 
 pytestmark = [pytest.mark.gpu,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]

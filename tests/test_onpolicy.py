@@ -9,12 +9,13 @@ from drivelab.algos import grpo
 from drivelab.api import build_config, evaluate_checkpoint, train
 from drivelab.envs import env_spaces, make_vector_env
 from drivelab.errors import DrivelabError
-from drivelab.training.episodes import EpisodeTracker
-from drivelab.training.losses import approx_kl, clipped_surrogate_loss, value_loss
-from drivelab.training.nets import ActorCritic
-from drivelab.training.normalize import RunningMeanStd
-from drivelab.training.returns import gae, group_relative_advantages, group_relative_step_advantages
-from drivelab.training.rollout import EpisodeStorage, RolloutCollector
+from drivelab.training.outputs.episodes import EpisodeTracker
+from drivelab.training.learning.losses import approx_kl, clipped_surrogate_loss, value_loss
+from drivelab.training.learning.policy_nets import ActorCritic
+from drivelab.training.learning.normalize import RunningMeanStd
+from drivelab.training.learning.returns import gae, group_relative_advantages, group_relative_step_advantages
+from drivelab.training.learning.rollout_buffers import EpisodeStorage
+from drivelab.training.collection.rollout import RolloutCollector
 from drivelab.training.run import Run
 
 

@@ -3,8 +3,8 @@ import numpy as np
 import torch
 
 from drivelab.algos.reinforce import advantage_weights
-from drivelab.training.losses import policy_gradient_loss
-from drivelab.training.nets import Policy
+from drivelab.training.learning.losses import policy_gradient_loss
+from drivelab.training.learning.policy_nets import Policy
 
 
 def test_policy_gradient_loss_value_and_gradient_by_hand():

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from drivelab.training.buffers import ReplayBuffer
+from drivelab.training.learning.replay_buffer import ReplayBuffer
 from drivelab.errors import DrivelabError
 
 VEC = gym.spaces.Box(-1, 1, (3,), np.float32)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import drivelab
-from drivelab.training.plots import mean_and_band, rolling_mean
+from drivelab.training.outputs.statistics import mean_and_band, rolling_mean
 from processes import run_drivelab
 
 
@@ -46,7 +46,7 @@ def test_video_of_an_action_repeat_env_keeps_real_time(tmp_path, repeat):
     from gymnasium.vector import AutoresetMode
 
     from drivelab.envs import EnvConfig, make_vector_env
-    from drivelab.training.video import Recorder
+    from drivelab.training.outputs.video import Recorder
 
     envs = make_vector_env(EnvConfig(id="CartPole-v1", num_envs=1, action_repeat=repeat),
                            autoreset_mode=AutoresetMode.DISABLED, render_mode="rgb_array")
@@ -88,7 +88,7 @@ def test_plot_draws_the_default_panels_and_groups_seeds(cartpole_run, run_cli, t
     for seed in (1, 2):
         drivelab.train("ppo", "CartPole-v1", steps=1024, seed=seed, num_envs=2, run_dir=tmp_path / f"s{seed}",
                        progress=False, ppo={"num_steps": 256})
-    from drivelab.training.plots import group_runs
+    from drivelab.training.outputs.plots import group_runs
 
     groups = group_runs([tmp_path / "s1", tmp_path / "s2", cartpole_run])
     assert sorted(len(members) for members in groups.values()) == [1, 2]

@@ -20,7 +20,7 @@ from safetensors.torch import load_file
 
 from drivelab.cli import main
 from drivelab.errors import KILL_PHASES
-from drivelab.training.checkpoint import list_checkpoints, load_checkpoint
+from drivelab.training.outputs.checkpoint import list_checkpoints, load_checkpoint
 from flaky_env import importable_env
 from processes import run_drivelab
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from drivelab.training.returns import normalize, reward_to_go
+from drivelab.training.learning.returns import normalize, reward_to_go
 
 
 def test_reward_to_go_single_episode_by_hand():

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from drivelab.training.checkpoint import checkpoint_step, list_checkpoints
+from drivelab.training.outputs.checkpoint import checkpoint_step, list_checkpoints
 from processes import run_drivelab
 
 TRAIN = ["-m", "drivelab", "train", "--algo", "ppo", "--env", "CartPole-v1", "--num-envs", "2", "--no-progress"]

@@ -16,15 +16,15 @@ from drivelab.api import build_config
 from drivelab.envs import env_spaces, make_vector_env
 from drivelab.envs.config import EnvConfig
 from drivelab.errors import DrivelabError
-from drivelab.training.checkpoint import load_checkpoint
-from drivelab.training.episodes import EpisodeTracker
-from drivelab.training.evaluation import EvalActor, evaluate_policy, new_best
-from drivelab.training.run_checkpoints import RunCheckpoints
-from drivelab.training.run_dir import open_run_dir, seed_everything
-from drivelab.training.run_eval import RunEvaluation, eval_env_config
-from drivelab.training.run_metrics import RunMetrics, check_finite
-from drivelab.training.timing import Timing
-from drivelab.training.tracking import Tracker
+from drivelab.training.collection.evaluation import EvalActor, evaluate_policy, new_best
+from drivelab.training.outputs.checkpoint import load_checkpoint
+from drivelab.training.outputs.episodes import EpisodeTracker
+from drivelab.training.outputs.tracking import Tracker
+from drivelab.training.run.checkpoints import RunCheckpoints
+from drivelab.training.run.directory import open_run_dir, seed_everything
+from drivelab.training.run.metrics import RunMetrics, check_finite
+from drivelab.training.run.periodic_evaluation import RunEvaluation, eval_env_config
+from drivelab.training.run.timing import Timing
 
 
 def _config(tmp_path: Path, **overrides):

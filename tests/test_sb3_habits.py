@@ -38,7 +38,7 @@ def test_save_writes_the_policy_alone_and_load_reads_it_back(tmp_path):
 
 def test_a_callback_hears_logs_evaluations_and_checkpoints_and_stops_the_run(tmp_path):
     from drivelab.api import RunEvent
-    from drivelab.training.checkpoint import load_checkpoint
+    from drivelab.training.outputs.checkpoint import load_checkpoint
 
     heard: list[RunEvent] = []
 
@@ -99,8 +99,8 @@ def test_an_env_instance_or_a_main_module_class_is_refused_in_one_line():
     ("reinforce", {"reinforce": {"batch_steps": 100}}),                               # whole episodes
 ])
 def test_steps_ends_the_run_where_its_config_progress_and_report_say(tmp_path, capsys, algo, overrides):
-    from drivelab.training.checkpoint import load_checkpoint
-    from drivelab.training.plots import read_metrics
+    from drivelab.training.outputs.checkpoint import load_checkpoint
+    from drivelab.training.outputs.plots import read_metrics
 
     result = drivelab.train(algo, "flaky_env:Tally-v0", steps=301, seed=0, num_envs=2, run_dir=tmp_path / "run",
                             progress=False, log_every=50, **overrides)
@@ -158,7 +158,7 @@ def test_the_custom_env_example_trains_and_evaluates(tmp_path):
 
 
 def test_a_short_sac_run_fits_its_heat_up_and_learns_with_one_line_saying_so(tmp_path, capsys):
-    from drivelab.training.plots import read_metrics
+    from drivelab.training.outputs.plots import read_metrics
 
     # SAC's learning_starts (5000) would outlast a 300-step run: it becomes a tenth of the run
     result = drivelab.train("sac", "Pendulum-v1", steps=300, seed=0, run_dir=tmp_path / "run", progress=False,

@@ -7,7 +7,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from drivelab.training.checkpoint import checkpoint_step, resolve_checkpoint
+from drivelab.training.outputs.checkpoint import checkpoint_step, resolve_checkpoint
 from drivelab.api import build_config
 from drivelab.api import evaluate_checkpoint
 from drivelab.api import train
@@ -152,7 +152,7 @@ def test_max_minutes_stops_training_with_a_final_checkpoint(tmp_path):
 
 
 def test_updates_run_with_update_threads_and_collection_goes_back_to_torch_threads():
-    from drivelab.training.timing import Timing
+    from drivelab.training.run.timing import Timing
 
     outside = torch.get_num_threads()
     timing = Timing(update_threads=outside + 1)
@@ -164,7 +164,7 @@ def test_updates_run_with_update_threads_and_collection_goes_back_to_torch_threa
 
 
 def test_eval_final_weighs_the_policy_the_run_ends_with(tmp_path):
-    from drivelab.training.plots import read_metrics
+    from drivelab.training.outputs.plots import read_metrics
 
     for final, expected in ((False, [256]), (True, [256, 384])):
         run_dir = tmp_path / f"final_{final}"

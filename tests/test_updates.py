@@ -15,11 +15,13 @@ from torch.distributions import Categorical
 
 from drivelab.algos import a2c, ddpg, grpo, ppo, reinforce, sac, td3
 from drivelab.errors import DrivelabError
-from drivelab.training.buffers import ReplayBatch
-from drivelab.training.losses import fused_adam
-from drivelab.training.nets import ActorCritic, OffPolicyAgent, Policy, limit_log_std, make_target
-from drivelab.training.offpolicy import Optimizers, update_precision
-from drivelab.training.rollout import RolloutBatch
+from drivelab.training.learning.replay_buffer import ReplayBatch
+from drivelab.training.learning.optim import fused_adam
+from drivelab.training.learning.policy_nets import ActorCritic, Policy, limit_log_std
+from drivelab.training.learning.offpolicy_nets import OffPolicyAgent, make_target
+from drivelab.training.learning.optim import Optimizers
+from drivelab.training.learning.precision import update_precision
+from drivelab.training.learning.rollout_buffers import RolloutBatch
 
 OBS = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
 DISCRETE = gym.spaces.Discrete(2)
@@ -271,7 +273,7 @@ def test_td3_crossq_update_one_joint_batch_normalised_pass_and_no_targets():
 
 
 def test_td3_pre_tanh_penalty_by_hand_and_on_a_saturated_actor():
-    from drivelab.training.losses import deterministic_actor_loss
+    from drivelab.training.learning.losses import deterministic_actor_loss
 
     # The actor step with the penalty, by hand: -Q_1(s, tanh(u)) + lambda * mean(u^2), after the critic's step.
     agent, target = _agent_and_target(stochastic=False, critics=2)
@@ -433,7 +435,7 @@ def test_bf16_updates_turn_autocast_on_only_when_asked_and_refuse_crossq(monkeyp
             assert torch.is_autocast_enabled("cpu") == bf16
     # auto: bfloat16 only where the hardware computes it (timing.native_bf16: None is "cannot tell")
     for native in (True, False, None):
-        monkeypatch.setattr("drivelab.training.offpolicy.native_bf16", lambda device, answer=native: answer)
+        monkeypatch.setattr("drivelab.training.learning.precision.native_bf16", lambda device, answer=native: answer)
         with _precision("auto"):
             assert torch.is_autocast_enabled("cpu") == (native is True)
     with pytest.raises(DrivelabError, match="'bf16_updates' must be true, false or auto"):

@@ -8,7 +8,7 @@ A2C), and takes ONE gradient step on
 
 No clipping, no epochs: every sample is used once, by the policy that collected it (which is
 what makes the plain policy gradient unbiased). The collector is PPO's
-(:class:`drivelab.training.rollout.RolloutCollector`); the iterations are tiny (T * N = 40 steps by
+(:class:`drivelab.training.collection.rollout.RolloutCollector`); the iterations are tiny (T * N = 40 steps by
 default), so metrics are averaged over the iterations between two logs.
 """
 
@@ -21,17 +21,19 @@ import torch
 
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
-from drivelab.training.losses import (explained_variance, gradient_step, linear_decay, policy_gradient_loss,
-                                     set_learning_rate, value_loss)
-from drivelab.training.nets import ActorCritic, limit_log_std
-from drivelab.training.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
+from drivelab.training.collection.rollout import RolloutCollector
+from drivelab.training.learning.hyperparams import ActorCriticParams
+from drivelab.training.learning.losses import explained_variance, policy_gradient_loss, value_loss
+from drivelab.training.learning.optim import gradient_step, linear_decay, set_learning_rate
+from drivelab.training.learning.policy_nets import ActorCritic, limit_log_std
+from drivelab.training.learning.rollout_buffers import RolloutBatch
 from drivelab.training.run import Run
 
 
 @dataclass
 class Params(ActorCriticParams):
     """A2C's defaults (A3C's paper and SB3); the shared fields are in
-    :class:`drivelab.training.rollout.ActorCriticParams`."""
+    :class:`drivelab.training.learning.hyperparams.ActorCriticParams`."""
     lr: float = 7e-4
     anneal_lr: bool = False
     num_steps: int = 5            # n in n-step returns

@@ -15,12 +15,15 @@ from dataclasses import dataclass
 import gymnasium as gym
 import torch
 
-from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
-from drivelab.training.losses import deterministic_actor_loss, gradient_step, saturated_share
-from drivelab.training.nets import OffPolicyAgent, frozen, make_target, polyak_update
-from drivelab.training.offpolicy import (NoisyExploration, NoisyExplorationParams, Optimizers, ReplayCollector,
-                                        make_optimizers, update_precision)
+from drivelab.training.collection.exploration import NoisyExploration
+from drivelab.training.collection.replay import ReplayCollector
+from drivelab.training.learning.hyperparams import NoisyExplorationParams
+from drivelab.training.learning.losses import deterministic_actor_loss, saturated_share
+from drivelab.training.learning.offpolicy_nets import OffPolicyAgent, frozen, make_target, polyak_update
+from drivelab.training.learning.optim import Optimizers, gradient_step, make_optimizers
+from drivelab.training.learning.precision import update_precision
+from drivelab.training.learning.replay_buffer import ReplayBatch
 from drivelab.training.run import Run
 
 

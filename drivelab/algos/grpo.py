@@ -43,10 +43,12 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from drivelab.config import EnvConfig, TrainConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
-from drivelab.training.losses import approx_kl, clipped_surrogate_loss, gradient_step, linear_decay, set_learning_rate
-from drivelab.training.nets import ActorCritic, PolicyNetParams, limit_log_std
-from drivelab.training.returns import group_relative_advantages, group_relative_step_advantages, reward_to_go
-from drivelab.training.rollout import EpisodeStorage
+from drivelab.training.learning.hyperparams import PolicyNetParams
+from drivelab.training.learning.losses import approx_kl, clipped_surrogate_loss
+from drivelab.training.learning.optim import gradient_step, linear_decay, set_learning_rate
+from drivelab.training.learning.policy_nets import ActorCritic, limit_log_std
+from drivelab.training.learning.returns import group_relative_advantages, group_relative_step_advantages, reward_to_go
+from drivelab.training.learning.rollout_buffers import EpisodeStorage
 from drivelab.training.run import Run
 
 
@@ -99,6 +101,66 @@ def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -
                        obs_norm=hp.normalize_obs, critic=False)
 
 
+class GroupRounds:
+    """Which group round each env is playing, and whether its current episode is recorded.
+
+    Env i belongs to group ``i // group_size``. ``rounds`` lists every round started in this
+    collection; ``round_of[i]`` is the index of the round env i plays (or last played), and
+    ``recording[i]`` says whether its current episode is part of the batch.
+    """
+
+    def __init__(self, num_envs: int, group_size: int):
+        self.num_envs = num_envs
+        self.groups = np.arange(num_envs) // group_size
+        self.rounds: list[Round] = []
+        self.round_of = np.zeros(num_envs, np.int64)
+        self.recording = np.zeros(num_envs, bool)
+
+    def start(self, group_ids: list[int], row: int, run: Run) -> tuple[np.ndarray, list[int | None]]:
+        """New rounds for ``group_ids`` from storage row ``row``: one fresh seed per group, shared
+        by its members. Returns the envs to reset and their seeds (None for the others)."""
+        mask = np.isin(self.groups, group_ids)
+        seeds: list[int | None] = [None] * self.num_envs
+        for g, seed in zip(group_ids, run.reset_seeds(np.ones(len(group_ids), bool))):
+            self.rounds.append(Round(int(g), seed, row))
+            members = np.flatnonzero(self.groups == g)
+            self.round_of[members] = len(self.rounds) - 1
+            self.recording[members] = True
+            for i in members:
+                seeds[i] = seed
+        return mask, seeds
+
+    def finish(self, done: np.ndarray) -> list[int]:
+        """Stop recording the envs whose recorded episode ended; returns the groups whose round is
+        now complete (no member still recording)."""
+        finished = done & self.recording
+        if not finished.any():
+            return []
+        self.recording[finished] = False
+        return [g for g in np.unique(self.groups[finished]) if not self.recording[self.groups == g].any()]
+
+    def waiting_seeds(self, reset: np.ndarray, seeds: list[int | None]) -> list[int | None]:
+        """``seeds`` with the start seed of its round for every env in ``reset`` that got none.
+
+        Envs that ended without starting a new round wait, masked. An ended env must not be
+        stepped, so they are reset too, into their round's start state."""
+        return [seeds[i] if seeds[i] is not None or not reset[i] else self.rounds[self.round_of[i]].seed
+                for i in range(self.num_envs)]
+
+
+def store_step(storage: EpisodeStorage, t: int, obs: np.ndarray, action: torch.Tensor,
+               dist: torch.distributions.Distribution, reward: np.ndarray, done: np.ndarray,
+               book: GroupRounds) -> None:
+    """Row ``t`` of ``storage``: the step, which envs recorded it, and the round each played."""
+    storage.obs[t] = obs
+    storage.actions[t] = action.cpu().numpy()
+    storage.log_probs[t] = dist.log_prob(action).cpu().numpy()
+    storage.rewards[t] = reward
+    storage.dones[t] = done
+    storage.recorded[t] = book.recording
+    storage.tag[t] = np.where(book.recording, book.round_of, -1)
+
+
 @torch.no_grad()
 def collect_group_rounds(envs: VectorEnv, agent: ActorCritic, storage: EpisodeStorage, hp: Params,
                          run: Run, min_steps: int) -> tuple[list[Round], int, int]:
@@ -109,67 +171,38 @@ def collect_group_rounds(envs: VectorEnv, agent: ActorCritic, storage: EpisodeSt
     Returns (rounds, recorded steps, T).
     """
     n = envs.num_envs
-    groups = np.arange(n) // hp.group_size        # group of each env
-    rounds: list[Round] = []
-    round_of = np.zeros(n, np.int64)              # the round each env belongs to (or last belonged to)
-    recording = np.zeros(n, bool)                 # its current episode is part of the batch
-    recorded_steps = 0
-
-    def start_rounds(group_ids: list[int], row: int) -> tuple[np.ndarray, list[int | None]]:
-        """New rounds for ``group_ids`` from storage row ``row``: one fresh seed per group, shared
-        by its members. Returns the envs to reset and their seeds."""
-        mask = np.isin(groups, group_ids)
-        seeds: list[int | None] = [None] * n
-        for g, seed in zip(group_ids, run.reset_seeds(np.ones(len(group_ids), bool))):
-            rounds.append(Round(int(g), seed, row))
-            members = np.flatnonzero(groups == g)
-            round_of[members] = len(rounds) - 1
-            recording[members] = True
-            for i in members:
-                seeds[i] = seed
-        return mask, seeds
-
-    _, seeds = start_rounds(list(range(n // hp.group_size)), 0)
+    book = GroupRounds(n, hp.group_size)
+    _, seeds = book.start(list(range(n // hp.group_size)), 0, run)
     with run.timing.env:
         obs, _ = envs.reset(seed=seeds)
     run.episodes.restart(np.ones(n, bool))
+    recorded_steps = 0
     t = 0
-    while recording.any():
+    while book.recording.any():
         storage.ensure(t)
         dist = agent.distribution(torch.as_tensor(obs, device=run.device))
         action = dist.sample()
         with run.timing.env:
             next_obs, reward, terminated, truncated, info = envs.step(agent.to_env(action))
         done = terminated | truncated
-        storage.obs[t] = obs
-        storage.actions[t] = action.cpu().numpy()
-        storage.log_probs[t] = dist.log_prob(action).cpu().numpy()
-        storage.rewards[t] = reward
-        storage.dones[t] = done
-        storage.recorded[t] = recording
-        storage.tag[t] = np.where(recording, round_of, -1)
-        recorded_steps += int(recording.sum())
-        run.episodes.step(reward, done, info, counted=recording)
+        store_step(storage, t, obs, action, dist, reward, done, book)
+        recorded_steps += int(book.recording.sum())
+        run.episodes.step(reward, done, info, counted=book.recording)
 
+        # A group whose last member finished starts a new round while the budget is not reached.
         reset, seeds = done.copy(), [None] * n
-        finished = done & recording
-        if finished.any():
-            recording[finished] = False
-            complete = [g for g in np.unique(groups[finished]) if not recording[groups == g].any()]
-            if complete and recorded_steps < min_steps:
-                new_members, seeds = start_rounds(complete, t + 1)
-                reset |= new_members
+        complete = book.finish(done)
+        if complete and recorded_steps < min_steps:
+            new_members, seeds = book.start(complete, t + 1, run)
+            reset |= new_members
         if reset.any():
-            # Envs that ended without starting a new round wait, masked. An ended env must not be
-            # stepped, so they are reset too, into their round's start state.
-            seeds = [seeds[i] if seeds[i] is not None or not reset[i] else rounds[round_of[i]].seed
-                     for i in range(n)]
+            seeds = book.waiting_seeds(reset, seeds)
             with run.timing.env:
                 next_obs, _ = envs.reset(seed=seeds, options={"reset_mask": reset})
             run.episodes.restart(reset)
         obs = next_obs
         t += 1
-    return rounds, recorded_steps, t
+    return book.rounds, recorded_steps, t
 
 
 def group_advantages(storage: EpisodeStorage, rounds: list[Round], length: int, hp: Params) -> np.ndarray:

@@ -11,8 +11,8 @@ of PPO"): advantage normalisation per minibatch, optional value clipping, global
 clipping, linear learning-rate annealing, orthogonal initialisation, and an optional early stop
 when the approximate KL to the rollout policy exceeds ``target_kl``.
 
-Shared parts used here: :class:`drivelab.training.rollout.RolloutCollector` (env stepping, episode ends,
-GAE from :func:`drivelab.training.returns.gae`), the losses in :mod:`drivelab.training.losses`, and
+Shared parts used here: :class:`drivelab.training.collection.rollout.RolloutCollector` (env stepping, episode ends,
+GAE from :func:`drivelab.training.learning.returns.gae`), the losses in :mod:`drivelab.training.learning.losses`, and
 :class:`drivelab.training.run.Run` (logging, evaluation, checkpoints).
 """
 
@@ -25,17 +25,19 @@ import torch
 
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
-from drivelab.training.losses import (approx_kl, clipped_surrogate_loss, explained_variance, gradient_step,
-                                     linear_decay, set_learning_rate, value_loss)
-from drivelab.training.nets import ActorCritic, limit_log_std
-from drivelab.training.rollout import ActorCriticParams, RolloutBatch, RolloutCollector
+from drivelab.training.collection.rollout import RolloutCollector
+from drivelab.training.learning.hyperparams import ActorCriticParams
+from drivelab.training.learning.losses import approx_kl, clipped_surrogate_loss, explained_variance, value_loss
+from drivelab.training.learning.optim import gradient_step, linear_decay, set_learning_rate
+from drivelab.training.learning.policy_nets import ActorCritic, limit_log_std
+from drivelab.training.learning.rollout_buffers import RolloutBatch
 from drivelab.training.run import Run
 
 
 @dataclass
 class Params(ActorCriticParams):
     """PPO's own hyperparameters; lr, num_steps, gamma, gae_lambda, ent_coef, ... are in
-    :class:`drivelab.training.rollout.ActorCriticParams`."""
+    :class:`drivelab.training.learning.hyperparams.ActorCriticParams`."""
     update_epochs: int = 4            # passes over each rollout
     num_minibatches: int = 4          # minibatches per pass (minibatch = T * N / this)
     clip_coef: float = 0.2            # PPO's epsilon: the ratio is clipped to [1 - eps, 1 + eps]

@@ -31,10 +31,12 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from drivelab.config import TrainConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
-from drivelab.training.losses import gradient_step, policy_gradient_loss
-from drivelab.training.nets import Policy, PolicyNetParams, limit_log_std
-from drivelab.training.returns import normalize, reward_to_go
-from drivelab.training.rollout import EpisodeStorage
+from drivelab.training.learning.hyperparams import PolicyNetParams
+from drivelab.training.learning.losses import policy_gradient_loss
+from drivelab.training.learning.optim import gradient_step
+from drivelab.training.learning.policy_nets import Policy, limit_log_std
+from drivelab.training.learning.returns import normalize, reward_to_go
+from drivelab.training.learning.rollout_buffers import EpisodeStorage
 from drivelab.training.run import Run
 
 
@@ -47,8 +49,7 @@ class Params(PolicyNetParams):
     ent_coef: float = 0.0             # weight of the entropy bonus
     # rtg | mean | normalize: what multiplies grad log pi (see the module docstring).
     advantage: str = "normalize"
-    # Clip the global gradient norm (0 = off).
-    max_grad_norm: float = 0.0        # clip the global gradient norm to this
+    max_grad_norm: float = 0.0        # clip the global gradient norm to this (0: off)
 
     def validate(self) -> None:
         super().validate()

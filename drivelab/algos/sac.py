@@ -3,7 +3,7 @@
 Maximises return plus entropy, E[sum_t r_t + alpha * H(pi(.|s_t))], with
 
 * a squashed Gaussian actor a = tanh(u), whose log-probability carries the tanh
-  change-of-variables correction (:func:`drivelab.training.nets.squashed_gaussian_log_prob`);
+  change-of-variables correction (:func:`drivelab.training.learning.offpolicy_nets.squashed_gaussian_log_prob`);
 * twin critics and a clipped double-Q target (Fujimoto et al. 2018), computed in one batched pass:
       y = r + gamma * (1 - terminated) * (min_e Q'_e(s', a') - alpha * log pi(a'|s')),  a' ~ pi(.|s');
 * the actor loss E[alpha * log pi(a|s) - min_e Q_e(s, a)] with a reparameterised a ~ pi(.|s);
@@ -12,8 +12,8 @@ Maximises return plus entropy, E[sum_t r_t + alpha * H(pi(.|s_t))], with
 * optionally (``actor_every``) the actor and alpha on every N-th critic step only, and
   (``average_policy``) an exponential average of the weights as the policy that is evaluated.
 
-Shared parts used here: :class:`drivelab.training.offpolicy.ReplayCollector` (env stepping into the
-replay buffer, update-to-data ratio), the networks in :mod:`drivelab.training.nets`, and
+Shared parts used here: :class:`drivelab.training.collection.replay.ReplayCollector` (env stepping into the
+replay buffer, update-to-data ratio), the networks in :mod:`drivelab.training.learning.offpolicy_nets`, and
 :class:`drivelab.training.run.Run` (logging, evaluation, checkpoints).
 """
 
@@ -25,13 +25,15 @@ from typing import NamedTuple
 import gymnasium as gym
 import torch
 
-from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
-from drivelab.training.nets import OffPolicyAgent, frozen, make_target, polyak_update
-from drivelab.training.offpolicy import (OffPolicyParams, PolicySampling, ReplayCollector, make_optimizers,
-                                        update_precision)
-from drivelab.training.losses import fused_adam, gradient_step
+from drivelab.training.collection.exploration import PolicySampling
+from drivelab.training.collection.replay import ReplayCollector
+from drivelab.training.learning.hyperparams import OffPolicyParams
+from drivelab.training.learning.offpolicy_nets import OffPolicyAgent, frozen, make_target, polyak_update
+from drivelab.training.learning.optim import fused_adam, gradient_step, make_optimizers
+from drivelab.training.learning.precision import update_precision
+from drivelab.training.learning.replay_buffer import ReplayBatch
 from drivelab.training.run import Run
 
 
@@ -41,8 +43,8 @@ class Params(OffPolicyParams):
     # Start well below 1 when rewards per step are small (MetaDrive: ~0.1-1): with alpha = 1 the
     # entropy bonus outweighs the reward, the policy stays near uniform while log(alpha) falls by
     # ~alpha_lr per update, and by the time the policy reacts to rewards alpha is ~0.001 and too
-    # slow to come back; exploration is gone (MetaDrive, 20 minutes: route completion 5.8%,
-    # vs 28.2% with 0.05).
+    # slow to come back; exploration is gone. The MetaDrive configs start at 0.05 for this reason
+    # (docs/results.md compares the two starts).
     init_alpha: float = 1.0
     autotune: bool = True             # tune alpha toward target_entropy (else fixed at init_alpha)
     target_entropy: float | None = None   # None: -|A|

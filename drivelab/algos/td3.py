@@ -13,11 +13,11 @@ together, so both halves are normalised with the statistics of their mixture; Q(
 pass, detached, bootstraps y. The actor's step reads the critics in eval mode (running statistics).
 The paper's wider critics and Batch Renormalization are left out (batch norm with a learned gain
 and bias, momentum 0.01). Keep ``pre_tanh_l2`` > 0 with it: on Pendulum the actor otherwise
-saturates at the bounds within 1,000 updates (docs/results.md, "What each lever did").
+saturates at the bounds within 1,000 updates (docs/history.md, "What each lever did in 30 minutes").
 
 Exploration adds Gaussian (or Ornstein-Uhlenbeck) noise to mu(s), with a linear schedule
-(:class:`drivelab.training.offpolicy.NoisyExploration`). The replay collector, networks and run services
-are the shared parts (:mod:`drivelab.training.offpolicy`, :mod:`drivelab.training.nets`, :mod:`drivelab.training.run`).
+(:class:`drivelab.training.collection.exploration.NoisyExploration`). The replay collector, networks and run services
+are the shared parts (:mod:`drivelab.training.collection.replay`, :mod:`drivelab.training.learning.offpolicy_nets`, :mod:`drivelab.training.run`).
 """
 
 from __future__ import annotations
@@ -27,13 +27,16 @@ from dataclasses import dataclass
 import gymnasium as gym
 import torch
 
-from drivelab.training.buffers import ReplayBatch
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
-from drivelab.training.losses import deterministic_actor_loss, gradient_step, saturated_share
-from drivelab.training.nets import OffPolicyAgent, frozen, make_target, polyak_update
-from drivelab.training.offpolicy import (NoisyExploration, NoisyExplorationParams, Optimizers, ReplayCollector,
-                                        make_optimizers, update_precision)
+from drivelab.training.collection.exploration import NoisyExploration
+from drivelab.training.collection.replay import ReplayCollector
+from drivelab.training.learning.hyperparams import NoisyExplorationParams
+from drivelab.training.learning.losses import deterministic_actor_loss, saturated_share
+from drivelab.training.learning.offpolicy_nets import OffPolicyAgent, frozen, make_target, polyak_update
+from drivelab.training.learning.optim import Optimizers, gradient_step, make_optimizers
+from drivelab.training.learning.precision import update_precision
+from drivelab.training.learning.replay_buffer import ReplayBatch
 from drivelab.training.run import Run
 
 

@@ -21,13 +21,19 @@ import gymnasium as gym
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 
 from drivelab.envs.config import EnvConfig
-from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs, registered_id
 from drivelab.envs.filters import apply_filters
 from drivelab.envs.metadrive import held_in_simulator
+from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs, registered_id
 from drivelab.envs.rewards import RewardShaping
 from drivelab.envs.supervised import SupervisedVectorEnv
-from drivelab.envs.wrappers import (ActionRepeat, DifferentialDrive, DiscreteActionGrid, FixedThrottle, ScenarioReplay,
-                                    parse_grid)
+from drivelab.envs.wrappers import (
+    ActionRepeat,
+    DifferentialDrive,
+    DiscreteActionGrid,
+    FixedThrottle,
+    ScenarioReplay,
+    parse_grid,
+)
 from drivelab.errors import DrivelabError, kill_point
 
 __all__ = ["EnvConfig", "make_env", "make_vector_env", "env_spaces", "DiscreteActionGrid", "FixedThrottle", "DifferentialDrive",
@@ -171,10 +177,10 @@ def worker_start_method(env_id: str) -> str:
 
     Both start each worker from a fresh interpreter, not as a fork of the trainer. The fork server
     is one such interpreter per trainer that imports the env's modules once and forks every worker
-    from itself, so a worker does not import them again: two MetaDrive workers took 7.4 s to
-    start, reset and close with ``spawn`` and 1.1 s from a running fork server (2 GHz AMD EPYC,
-    ``benchmarks/worker_start.py``). That time recurs for every evaluation, video and restarted
-    worker. macOS keeps ``spawn``: its system libraries are not safe to use after fork.
+    from itself, so a worker does not import them again (MetaDrive's imports are most of a
+    spawned worker's start; ``benchmarks/worker_start.py`` times both methods). That start recurs
+    for every evaluation, video and restarted worker. macOS keeps ``spawn``: its system libraries
+    are not safe to use after fork.
     """
     if not sys.platform.startswith("linux"):
         return "spawn"

@@ -28,7 +28,8 @@ class EnvConfig:
     num_envs: int = 4
     # Where the envs run: sync (in this process), async (one subprocess each), ray (in Ray actors,
     # on this machine or a cluster: drivelab.envs.ray_backend), or auto: async for simulators that
-    # allow one instance per process (MetaDrive), sync otherwise. (Formerly `vectorization`.)
+    # allow one instance per process (MetaDrive), sync otherwise. (A saved config's
+    # `vectorization` is read as this field: drivelab.config.parse_config.)
     backend: str = "auto"
     # Ray backend: envs per actor (stepped together, one remote call per actor and step; MetaDrive
     # allows 1) and the CPUs Ray reserves for each actor.
@@ -45,7 +46,8 @@ class EnvConfig:
     # MetaDrive, in training only: hold each action inside the simulator (MetaDrive's
     # decision_repeat x action_repeat physics steps in one env step, horizon / action_repeat)
     # instead of the ActionRepeat wrapper. One traffic decision, one observation and one crash /
-    # line check per decision: ~1.6x faster per decision, but the traffic also decides every
+    # line check per decision instead of per env step, so a decision costs less
+    # (benchmarks/metadrive_reset_cost.py), but the traffic also decides every
     # action_repeat x 0.1 s and per-step reward terms count once per decision. Evaluation always
     # plays the env as published, with the wrapper (EnvConfig.played).
     simulator_repeat: bool = False
@@ -123,8 +125,9 @@ class EnvConfig:
         return dataclasses.replace(self, simulator_repeat=False, scenario_replay=0.0)
 
     def resolved_step_groups(self) -> int:
-        """``step_groups``, with None resolved to 1 (lockstep: on this 2-core machine groups measured
-        no faster, 271 against 283 steps/s with 2 MetaDrive envs)."""
+        """``step_groups``, with None resolved to 1 (lockstep): groups pay off only where cores are
+        free while the trainer computes, so they are asked for, not assumed (throughput of both:
+        ``benchmarks/throughput.py``)."""
         return self.step_groups or 1
 
     def resolved_backend(self) -> str:

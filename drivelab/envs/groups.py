@@ -5,7 +5,7 @@ A lockstep vector env leaves its workers idle twice per step: while the trainer 
 actions, and while the slowest env finishes (a MetaDrive reset builds a new map; the other
 workers wait for it). With groups the trainer chooses one group's actions while the others
 simulate, and a slow env holds back only its own group. Each group keeps its own row in the
-rollout (:class:`drivelab.training.rollout.RolloutCollector`), so the data of every env is the same
+rollout (:class:`drivelab.training.collection.rollout.RolloutCollector`), so the data of every env is the same
 whatever order the groups answer in; only wall time changes.
 
 Groups need subprocess envs (``backend: async``); in-process (sync) and Ray envs form one group.
@@ -20,8 +20,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from drivelab.envs.config import EnvConfig
 from drivelab.envs import make_vector_env
+from drivelab.envs.config import EnvConfig
 
 
 class EnvGroups:

@@ -29,10 +29,10 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from gymnasium.vector import AutoresetMode, SyncVectorEnv, VectorEnv
+from gymnasium.vector import AutoresetMode, SyncVectorEnv
 from gymnasium.vector.utils import batch_space
 
-from drivelab.envs.supervised import RestartBudget, error_line, final_obs_info
+from drivelab.envs.supervised import RestartingVectorEnv, error_line, final_obs_info
 from drivelab.errors import DrivelabError
 
 
@@ -92,7 +92,7 @@ class EnvGroup:
         self.envs.close()
 
 
-class RayVectorEnv(VectorEnv):
+class RayVectorEnv(RestartingVectorEnv):
     """``num_envs`` envs in Ray actors behind the VectorEnv interface (see the module docstring)."""
 
     def __init__(self, env_fns: Sequence[Callable[[], gym.Env]], envs_per_actor: int = 1,
@@ -104,7 +104,7 @@ class RayVectorEnv(VectorEnv):
         self._ray = ray
         self.env_fns, self.autoreset_mode = list(env_fns), AutoresetMode(autoreset_mode)
         self.num_envs = len(self.env_fns)
-        self.step_timeout, self.budget, self.on_restart = step_timeout, RestartBudget(max_restarts, restart_window), on_restart
+        self._supervise(step_timeout, max_restarts, restart_window, on_restart)
         self.slices = [slice(i, min(i + envs_per_actor, self.num_envs)) for i in range(0, self.num_envs, envs_per_actor)]
         # max_restarts=0: a dead actor stays dead, and this class decides what its episodes become.
         self._actor_class = ray.remote(num_cpus=actor_cpus, max_restarts=0)(EnvGroup)
@@ -122,9 +122,6 @@ class RayVectorEnv(VectorEnv):
         self.action_space = batch_space(act_space, self.num_envs)
         self.metadata = {**metadata, "autoreset_mode": self.autoreset_mode}
         self.render_mode = None
-        self.restarts = 0
-        self._steps = 0
-        self._last_obs: np.ndarray | None = None
         self._fresh = [False] * len(self.actors)    # restarted, not reset yet (NEXT_STEP: reset on the next step)
         self._pending: list | None = None
 
@@ -146,7 +143,7 @@ class RayVectorEnv(VectorEnv):
                 if mask is not None and not self._fresh[a]:
                     sub_options["reset_mask"] = mask[envs]
             calls[a] = actor.reset.remote(list(seeds[envs]), sub_options)
-        replies = self._gather(calls)
+        replies = gather(self._ray, calls, self.step_timeout)
         obs = self._last_obs.copy() if self._last_obs is not None else np.zeros(self.observation_space.shape,
                                                                                  self.observation_space.dtype)
         parts = []
@@ -172,7 +169,7 @@ class RayVectorEnv(VectorEnv):
     def step_wait(self):
         self._steps += 1
         pending, self._pending = self._pending, None
-        replies = self._gather({a: ref for a, (_, ref) in pending.items()})
+        replies = gather(self._ray, {a: ref for a, (_, ref) in pending.items()}, self.step_timeout)
         n = self.num_envs
         obs = np.empty(self.observation_space.shape, self.observation_space.dtype)
         reward, terminated, truncated = np.zeros(n), np.zeros(n, bool), np.zeros(n, bool)
@@ -191,27 +188,7 @@ class RayVectorEnv(VectorEnv):
         self._last_obs = obs
         return obs, reward, terminated, truncated, merge_infos(parts, n)
 
-    def step(self, actions):
-        self.step_async(actions)
-        return self.step_wait()
-
     # ---- failures -------------------------------------------------------------------------
-
-    def _gather(self, calls: dict[int, Any]) -> dict[int, Any]:
-        """actor -> its reply, or the exception where the actor raised, died or did not answer in time."""
-        ray = self._ray
-        ready, _ = ray.wait(list(calls.values()), num_returns=len(calls), timeout=self.step_timeout)
-        ready = set(ready)
-        replies: dict[int, Any] = {}
-        for a, ref in calls.items():
-            if ref not in ready:
-                replies[a] = TimeoutError(f"no answer within env.step_timeout {self.step_timeout} s")
-                continue
-            try:
-                replies[a] = ray.get(ref)
-            except Exception as exc:  # noqa: BLE001 - the env raised, or the actor's process died
-                replies[a] = exc
-        return replies
 
     def _cut_episodes(self, a: int, exc: BaseException) -> tuple[np.ndarray, dict]:
         """Replace actor ``a``; its episodes end as truncated at their last observation."""
@@ -226,13 +203,16 @@ class RayVectorEnv(VectorEnv):
         return last, {}
 
     def _restart(self, a: int, during: str, exc: BaseException) -> None:
-        self.budget.spend(self._steps, exc, f"Ray env actor {a} failed during {during} ({{error}}); restarting it, "
-                          "its episodes end as truncated", stop=self.close)
-        self.restarts += 1
+        self._restart_after(exc, f"Ray env actor {a} failed during {during} ({{error}}); restarting it, its "
+                            "episodes end as truncated", replace=lambda: self._replace_actor(a))
+
+    def _replace_actor(self, a: int) -> None:
         self._ray.kill(self.actors[a], no_restart=True)
         self.actors[a] = self._spawn(self.slices[a])
-        if self.on_restart is not None:
-            self.on_restart(self.restarts)
+
+    def _stop_workers(self) -> None:
+        """Kill every actor (over the restart budget)."""
+        self.close()
 
     # ---- the rest of the VectorEnv interface ----------------------------------------------
 
@@ -256,6 +236,23 @@ class RayVectorEnv(VectorEnv):
                 pass
         self.actors = []
         self.closed = True
+
+
+def gather(ray, calls: dict[int, Any], timeout: float | None) -> dict[int, Any]:
+    """The replies to remote ``calls`` (actor -> object ref): each actor's reply, or the exception
+    where the actor raised, died or did not answer within ``timeout``."""
+    ready, _ = ray.wait(list(calls.values()), num_returns=len(calls), timeout=timeout)
+    ready = set(ready)
+    replies: dict[int, Any] = {}
+    for a, ref in calls.items():
+        if ref not in ready:
+            replies[a] = TimeoutError(f"no answer within env.step_timeout {timeout} s")
+            continue
+        try:
+            replies[a] = ray.get(ref)
+        except Exception as exc:  # noqa: BLE001 - the env raised, or the actor's process died
+            replies[a] = exc
+    return replies
 
 
 def _per_env_seeds(seed: int | Sequence[int | None] | None, n: int) -> np.ndarray:

@@ -84,8 +84,8 @@ def idle_penalty(info: dict, prev: dict | None, min_speed: float = 2.0) -> TermR
     """-1 for each step slower than ``min_speed`` (m/s); scale it with ``weight``.
 
     Why: with progress rewards and crash penalties, standing still costs nothing, so a cautious
-    policy can learn to stop behind traffic or before a bend and wait out the step limit (a
-    MetaDrive PPO at 1M steps did so in 6 of 30 held-out episodes). Paying a little for every
+    policy can learn to stop behind traffic or before a bend and wait out the step limit (trained
+    MetaDrive policies did: docs/results.md, PPO drive recipe). Paying a little for every
     idle step makes waiting worse than driving on, once it lasts longer than the crash penalty.
     """
     return TermResult(-1.0 if info["speed"] < min_speed else 0.0)

@@ -64,95 +64,46 @@ def final_obs_info(last_obs, info: dict) -> dict:
     return {**info, "final_obs": final, "_final_obs": mask, "final_info": {}, "_final_info": mask}
 
 
-class SupervisedVectorEnv(VectorEnv):
-    def __init__(self, make: Callable[[], AsyncVectorEnv], step_timeout: float | None, max_restarts: int,
-                 restart_window: int, on_restart: Callable[[int], None] | None = None):
-        self.make, self.step_timeout = make, step_timeout
+class RestartingVectorEnv(VectorEnv):
+    """The restart bookkeeping both supervised backends share (:class:`SupervisedVectorEnv` here,
+    ``RayVectorEnv`` in :mod:`drivelab.envs.ray_backend`): a count of vector steps (the clock of the
+    restart window), a :class:`RestartBudget` spent on each failure, the replacement of the failed
+    workers and ``on_restart(total)``. A subclass says how to stop all its workers."""
+
+    def _supervise(self, step_timeout: float | None, max_restarts: int, restart_window: int,
+                   on_restart: Callable[[int], None] | None) -> None:
+        """Set up the bookkeeping; the subclass's ``__init__`` calls it."""
+        self.step_timeout = step_timeout
         self.budget, self.on_restart = RestartBudget(max_restarts, restart_window), on_restart
-        self.envs = make()
-        for name in ("num_envs", "single_observation_space", "single_action_space", "observation_space",
-                     "action_space", "metadata", "render_mode", "spec"):
-            setattr(self, name, getattr(self.envs, name, None))
-        self.autoreset_mode = self.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
         self.restarts = 0
         self._steps = 0
-        self._pending_error: Exception | None = None
-        self._queued_calls = 0           # call_queue calls whose results call_next has not read yet
-        self._last_obs = None
-        # True while actions or results are half sent or half read. A Ctrl-C (or SIGTERM, which
-        # drivelab turns into one) there leaves gymnasium's pipes out of step: a worker may owe a
-        # step result that close() would take for its goodbye, or owe nothing while close()
-        # waits for it. close() then stops the workers instead of talking to them.
-        self._mid_exchange = False
-
-    def reset(self, *, seed=None, options=None):
-        self._mid_exchange = True
-        try:
-            self.envs.reset_async(seed=seed, options=options)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                obs, info = self.envs.reset_wait(timeout=self.step_timeout)
-        except Exception as exc:  # noqa: BLE001 - whatever the simulator raised, or a dead/hung worker
-            self._restart(exc)
-            obs, info = self.envs.reset(seed=seed)  # fresh workers: every env starts anew
-        self._mid_exchange = False
-        self._last_obs = obs
-        return obs, info
-
-    def step_async(self, actions) -> None:
-        self._pending_error = None
-        self._mid_exchange = True
-        try:
-            self.envs.step_async(actions)
-        except Exception as exc:  # noqa: BLE001
-            self._pending_error = exc
-        self._mid_exchange = False
-
-    def step_wait(self):
-        self._steps += 1
-        self._mid_exchange = True
-        try:
-            if self._pending_error is not None:
-                raise self._pending_error
-            with warnings.catch_warnings():  # gymnasium re-prints the worker's traceback; we say it in one line
-                warnings.simplefilter("ignore")
-                result = self.envs.step_wait(timeout=self.step_timeout)
-        except Exception as exc:  # noqa: BLE001
-            result = self._cut_episodes(exc)
-        self._mid_exchange = False
-        self._last_obs = result[0]
-        return result
+        self._last_obs = None    # each env's latest observation: the final one of an episode cut short
 
     def step(self, actions):
         self.step_async(actions)
         return self.step_wait()
 
-    def result_pipes(self) -> list:
-        """The workers' pipes, readable once a step's result is there (for ``connection.wait``;
-        a dead worker's pipe is readable too, and its ``step_wait`` restarts it)."""
-        return [] if self._pending_error is not None else self.envs.parent_pipes
-
-    def _cut_episodes(self, exc: BaseException):
-        """Restart every worker; the step ends all episodes in flight as truncated."""
-        self._restart(exc)
-        n = self.num_envs
-        reward, terminated, truncated = np.zeros(n), np.zeros(n, bool), np.ones(n, bool)
-        last = self._last_obs
-        if self.autoreset_mode == AutoresetMode.SAME_STEP:  # the caller expects the next episodes' starts
-            obs, info = self.envs.reset()
-            self._last_obs = obs
-            return obs, reward, terminated, truncated, final_obs_info(last, info)
-        self.envs.reset()  # the caller resets the ended envs itself (DISABLED) on fresh workers
-        return last, reward, terminated, truncated, {}
-
-    def _restart(self, exc: BaseException) -> None:
-        self.budget.spend(self._steps, exc, "env worker failed ({error}); restarting the envs, their episodes "
-                          "end as truncated", stop=self._stop_workers)
+    def _restart_after(self, exc: BaseException, restarting: str, replace: Callable[[], None]) -> None:
+        """Spend the restart budget on ``exc`` (over it: stop every worker and raise), then
+        ``replace()`` the failed workers and tell ``on_restart``. ``restarting`` as in
+        :meth:`RestartBudget.spend`."""
+        self.budget.spend(self._steps, exc, restarting, stop=self._stop_workers)
         self.restarts += 1
-        self._stop_workers()  # a failed or hung exchange: the pipes are out of step, no goodbye
-        self.envs = self.make()
+        replace()
         if self.on_restart is not None:
             self.on_restart(self.restarts)
+
+    def _stop_workers(self) -> None:
+        raise NotImplementedError
+
+
+class WorkerCallQueue:
+    """The call protocol of :class:`SupervisedVectorEnv`'s workers: ``call(name, *args)`` sent to
+    every gymnasium worker over its pipe, without waiting for the calls sent before it (a worker
+    answers its calls in order). A failed call restarts the workers like a failed step.
+
+    A mixin: it uses its host's ``envs`` (an ``AsyncVectorEnv``), ``_steps``, ``_pending_error``,
+    ``_queued_calls``, ``_mid_exchange`` and ``_restart``."""
 
     def call_or_restart(self, name: str, *args, steps: int = 1, timeout: float | None = None) -> tuple | None:
         """``call(name, *args)`` in every worker, a call that plays ``steps`` env steps in each
@@ -201,6 +152,92 @@ class SupervisedVectorEnv(VectorEnv):
         self._pending_error = None
         self._mid_exchange = self._queued_calls > 0
         return results
+
+
+class SupervisedVectorEnv(WorkerCallQueue, RestartingVectorEnv):
+    """Gymnasium's ``AsyncVectorEnv`` (built by ``make``) whose workers are all replaced when one
+    fails (see the module docstring)."""
+
+    def __init__(self, make: Callable[[], AsyncVectorEnv], step_timeout: float | None, max_restarts: int,
+                 restart_window: int, on_restart: Callable[[int], None] | None = None):
+        self.make = make
+        self._supervise(step_timeout, max_restarts, restart_window, on_restart)
+        self.envs = make()
+        for name in ("num_envs", "single_observation_space", "single_action_space", "observation_space",
+                     "action_space", "metadata", "render_mode", "spec"):
+            setattr(self, name, getattr(self.envs, name, None))
+        self.autoreset_mode = self.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
+        self._pending_error: Exception | None = None
+        self._queued_calls = 0           # call_queue calls whose results call_next has not read yet
+        # True while actions or results are half sent or half read. A Ctrl-C (or SIGTERM, which
+        # drivelab turns into one) there leaves gymnasium's pipes out of step: a worker may owe a
+        # step result that close() would take for its goodbye, or owe nothing while close()
+        # waits for it. close() then stops the workers instead of talking to them.
+        self._mid_exchange = False
+
+    def reset(self, *, seed=None, options=None):
+        self._mid_exchange = True
+        try:
+            self.envs.reset_async(seed=seed, options=options)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                obs, info = self.envs.reset_wait(timeout=self.step_timeout)
+        except Exception as exc:  # noqa: BLE001 - whatever the simulator raised, or a dead/hung worker
+            self._restart(exc)
+            obs, info = self.envs.reset(seed=seed)  # fresh workers: every env starts anew
+        self._mid_exchange = False
+        self._last_obs = obs
+        return obs, info
+
+    def step_async(self, actions) -> None:
+        self._pending_error = None
+        self._mid_exchange = True
+        try:
+            self.envs.step_async(actions)
+        except Exception as exc:  # noqa: BLE001
+            self._pending_error = exc
+        self._mid_exchange = False
+
+    def step_wait(self):
+        self._steps += 1
+        self._mid_exchange = True
+        try:
+            if self._pending_error is not None:
+                raise self._pending_error
+            with warnings.catch_warnings():  # gymnasium re-prints the worker's traceback; we say it in one line
+                warnings.simplefilter("ignore")
+                result = self.envs.step_wait(timeout=self.step_timeout)
+        except Exception as exc:  # noqa: BLE001
+            result = self._cut_episodes(exc)
+        self._mid_exchange = False
+        self._last_obs = result[0]
+        return result
+
+    def result_pipes(self) -> list:
+        """The workers' pipes, readable once a step's result is there (for ``connection.wait``;
+        a dead worker's pipe is readable too, and its ``step_wait`` restarts it)."""
+        return [] if self._pending_error is not None else self.envs.parent_pipes
+
+    def _cut_episodes(self, exc: BaseException):
+        """Restart every worker; the step ends all episodes in flight as truncated."""
+        self._restart(exc)
+        n = self.num_envs
+        reward, terminated, truncated = np.zeros(n), np.zeros(n, bool), np.ones(n, bool)
+        last = self._last_obs
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:  # the caller expects the next episodes' starts
+            obs, info = self.envs.reset()
+            self._last_obs = obs
+            return obs, reward, terminated, truncated, final_obs_info(last, info)
+        self.envs.reset()  # the caller resets the ended envs itself (DISABLED) on fresh workers
+        return last, reward, terminated, truncated, {}
+
+    def _restart(self, exc: BaseException) -> None:
+        self._restart_after(exc, "env worker failed ({error}); restarting the envs, their episodes end as "
+                            "truncated", replace=self._replace_workers)
+
+    def _replace_workers(self) -> None:
+        self._stop_workers()  # a failed or hung exchange: the pipes are out of step, no goodbye
+        self.envs = self.make()
 
     def call(self, name: str, *args, **kwargs):
         return self.envs.call(name, *args, **kwargs)

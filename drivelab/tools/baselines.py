@@ -22,20 +22,13 @@ same env (drivelab's MetaDrive adapter, e.g. ``MetaDrive-validation-v0``), with 
   eval --stochastic``) it samples from its Gaussian instead, so that a trained policy whose actions
   are sampled is compared with a sampled expert.
 
-Measured on ``MetaDrive-validation-v0`` (horizon 1000, MetaDrive's default traffic density 0.1),
-deterministic, one episode per scenario (crash and out of road can both happen in one episode):
-
-==================  =========  =======  ================  =====  ===========
-baseline            scenarios  success  route completion  crash  out of road
-==================  =========  =======  ================  =====  ===========
-metadrive-expert    0-29       63.3%    76.8%             26.7%  10.0%
-lane-keeping        0-9        0.0%     40.9%             60.0%  50.0%
-random (seed 0)     0-9        0.0%     4.8%              0.0%   0.0%
-==================  =========  =======  ================  =====  ===========
-
-The lane keeper's constant throttle is a constant engine force on MetaDrive, so the car keeps
-speeding up until it leaves the road in a curve or runs into traffic (after 100-230 steps). The
-random policy's throttle averages zero: the car creeps and every episode reaches the horizon.
+Each is evaluated with the protocol of a trained checkpoint (deterministic unless asked, one
+episode per scenario); ``drivelab eval --policy NAME`` prints its success, route completion,
+crash and out-of-road rates (one episode can both crash and leave the road), and
+docs/results.md records what each baseline scores. What to expect:
+the lane keeper's constant throttle is a constant engine force on MetaDrive, so the car keeps
+speeding up until it leaves the road in a curve or runs into traffic. The random policy's
+throttle averages zero: the car creeps and its episodes run to the horizon.
 
 How it works. MetaDrive runs in ``spawn``ed subprocesses (one engine per process), so a baseline
 that needs the simulator's internals (the expert needs the vehicle, lane keeping needs ``info``)
@@ -47,7 +40,7 @@ evaluation loop is the one trained policies use, unchanged::
 
     wrapper, policy = baseline("metadrive-expert", action_space)
     envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, wrapper=wrapper)
-    result = drivelab.training.evaluation.run_episodes(envs, policy, episodes=30)
+    result = drivelab.training.collection.evaluation.run_episodes(envs, policy, episodes=30)
 
 (:func:`drivelab.tools.policies.evaluate_baseline` does this; ``drivelab eval --policy metadrive-expert``.)
 """

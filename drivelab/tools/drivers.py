@@ -117,7 +117,7 @@ def model_card(path: str | Path) -> str:
 
 def card_metrics(per_episode: dict[str, list[float]]) -> dict[str, dict[str, float]]:
     """{metric: {mean, ci95}} of per-episode outcomes (95% CI of the mean, Student's t)."""
-    from drivelab.training.plots import mean_and_ci95
+    from drivelab.training.outputs.statistics import mean_and_ci95
 
     out = {}
     for name in CARD_METRICS:

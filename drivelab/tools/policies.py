@@ -24,9 +24,9 @@ from drivelab.errors import DrivelabError
 from drivelab.tools.baselines import baseline
 from drivelab.tools.drivers import check_observation_layout, resolve_policy_path
 from drivelab.tools.export import DeployedPolicy, export_policy, metadata
-from drivelab.training.checkpoint import Checkpoint, checkpoint_step, load_checkpoint, restore
-from drivelab.training.evaluation import EvalResult, play
-from drivelab.training.video import Recorder
+from drivelab.training.collection.evaluation import EvalResult, play
+from drivelab.training.outputs.checkpoint import Checkpoint, checkpoint_step, load_checkpoint, restore
+from drivelab.training.outputs.video import Recorder
 
 # The env the baselines play when neither a checkpoint nor an env id says which.
 DEFAULT_BASELINE_ENV = "MetaDrive-validation-v0"
@@ -73,7 +73,7 @@ def evaluate_checkpoint(path: str | Path, episodes: int = 10, env_id: str | None
     ``MetaDrive-validation-v0``); the training env's kwargs are then dropped, as they may
     redefine that env's scenario range, and ``env_kwargs`` are used instead (all but those
     that shape the observation, :meth:`~drivelab.envs.config.EnvConfig.on`). A ``recorder``
-    (:class:`drivelab.training.video.Recorder`) films the episodes, on one env. ``path`` may
+    (:class:`drivelab.training.outputs.video.Recorder`) films the episodes, on one env. ``path`` may
     also name a shipped driver (``drivelab-driver``).
     """
     ckpt = load_checkpoint(resolve_policy_path(path))

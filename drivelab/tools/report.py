@@ -19,13 +19,13 @@ from typing import Any
 
 import yaml
 
-from drivelab.version import __version__
 from drivelab.tools.baselines import BASELINES
 from drivelab.tools.policies import baseline_env, evaluate_baseline, evaluate_checkpoint
-from drivelab.training.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
-from drivelab.training.plots import plot_runs, read_metrics
-from drivelab.training.tracking import default_mlflow_uri
-from drivelab.training.video import Recorder
+from drivelab.training.outputs.checkpoint import checkpoint_step, list_checkpoints, resolve_checkpoint
+from drivelab.training.outputs.plots import plot_runs, read_metrics
+from drivelab.training.outputs.tracking import default_mlflow_uri
+from drivelab.training.outputs.video import Recorder
+from drivelab.version import __version__
 
 STYLE = """
 body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }

@@ -95,7 +95,7 @@ def record_episodes(env_id: str, policy: str, episodes: int, seed: int = 0, env_
             act = lambda obs, info: np.array(lane_keeping_controller(info)[: space.shape[0]], np.float32)  # noqa: E731
     else:
         from drivelab.tools.policies import checkpoint_config, policy_from_checkpoint
-        from drivelab.training.checkpoint import load_checkpoint
+        from drivelab.training.outputs.checkpoint import load_checkpoint
 
         ckpt = load_checkpoint(policy)
         cfg = checkpoint_config(ckpt)

@@ -2,8 +2,9 @@
 
 Every combination of the grid values and seeds is a normal drivelab run (its own run directory
 ``SWEEP/<setting>-s<seed>``, resumable) trained inside a Ray Tune trial by the ``train``
-function that the caller hands down (:func:`drivelab.api.train`: the face above the tools), as many at once as the cluster has CPUs (``cpus_per_trial`` each). Running the same sweep
-again resumes unfinished runs and skips finished ones. At the end: a table of the final metrics
+function that the caller hands down (:func:`drivelab.api.train`: the face above the tools), as
+many at once as the cluster has CPUs (``cpus_per_trial`` each). Running the same sweep again
+resumes unfinished runs and skips finished ones. At the end: a table of the final metrics
 per setting (mean and 95% confidence interval over the seeds, Student's t), ``sweep.json``,
 ``sweep.md``, the runs' curves (``curves.png``, seeds grouped) and, when a grid key is numeric,
 the final metrics against it (``final.png``: MetaDrive's generalisation plot, success against
@@ -38,11 +39,12 @@ from typing import Any
 import numpy as np
 import yaml
 
-from drivelab.config import merge_overrides, parse_value, read_yaml, resolve_config_file
+from drivelab.config import TrainConfig, merge_overrides, parse_value, read_yaml, resolve_config_file
 from drivelab.errors import DrivelabError
 from drivelab.tools.policies import build_config
 from drivelab.tools.tables import format_table
-from drivelab.training.plots import last_metrics, mean_and_ci95, read_metrics
+from drivelab.training.outputs.plots import last_metrics, read_metrics
+from drivelab.training.outputs.statistics import mean_and_ci95
 
 # The final metrics summarised per setting, the first of each pair that the runs logged.
 SUMMARY_METRICS = ("eval/success_rate", "eval/route_completion", "eval/return_mean", "episode/success_rate",
@@ -205,6 +207,30 @@ def run_search(base: dict, search: Search, seed: int, out: Path, train: Callable
     _quiet_tune()
     import_ray()
     connect(ray_address)
+    tuner = _search_tuner(base, search, seed, out, train, probe, cpus_per_trial, max_concurrent)
+    trials = _search_trials(tuner.fit(), out, search.metric, probe.steps)
+    ranked = sorted((t for t in trials if t.get("metric") is not None), key=lambda t: t["metric"],
+                    reverse=search.mode == "max")
+    summary = {"search": {**search.__dict__, "steps": probe.steps, "seed": seed},
+               "trials": ranked + [t for t in trials if t.get("metric") is None]}
+    if ranked:
+        summary["best"] = ranked[0]
+    (out / "sweep.json").write_text(json.dumps(summary, indent=1))
+    (out / "sweep.md").write_text(format_search(summary) + "\n")
+    runs = [out / t["run"] for t in ranked]
+    if runs:
+        from drivelab.training.outputs.plots import plot_runs
+
+        plot_runs(runs, out / "curves.png")
+    return summary
+
+
+def _search_tuner(base: dict, search: Search, seed: int, out: Path, train: Callable[..., Any], probe: TrainConfig,
+                  cpus_per_trial: float, max_concurrent: int | None) -> Any:
+    """The Ray Tune ``Tuner`` of a search: :func:`_search_trial` as the trainable, Optuna's TPE
+    sampler (seeded with ``seed``) picking the values and, with ``search.asha``, ASHA stopping
+    trials once they trained ``search.grace_period`` env steps (default: the base config's
+    ``eval.every``, or its ``log_every`` without evaluations), up to ``probe.steps``."""
     from ray import tune
     from ray.tune.schedulers import ASHAScheduler
 
@@ -219,7 +245,7 @@ def run_search(base: dict, search: Search, seed: int, out: Path, train: Callable
         grace = search.grace_period or probe.eval.every or probe.log_every
         scheduler = ASHAScheduler(time_attr="step", max_t=probe.steps, grace_period=grace,
                                   reduction_factor=search.reduction_factor)
-    tuner = tune.Tuner(
+    return tune.Tuner(
         tune.with_resources(tune.with_parameters(_search_trial, base=base, out=out, seed=seed, train=train),
                             {"cpu": cpus_per_trial}),
         param_space=search.domains(),
@@ -228,7 +254,12 @@ def run_search(base: dict, search: Search, seed: int, out: Path, train: Callable
                                     scheduler=scheduler, max_concurrent_trials=max_concurrent),
         run_config=tune.RunConfig(name="tune", storage_path=str(out / ".tune"), verbose=0),
     )
-    results = tuner.fit()
+
+
+def _search_trials(results: Any, out: Path, metric: str, planned_steps: int) -> list[dict]:
+    """One entry per trial of Tune's ``results``: its run directory, sampled setting, the env step
+    it reached (``stopped_early`` when short of ``planned_steps``) and its final ``metric``; a trial
+    that left no metrics gets its error instead."""
     trials = []
     for result in results:
         metrics = result.metrics or {}
@@ -239,22 +270,9 @@ def run_search(base: dict, search: Search, seed: int, out: Path, train: Callable
             continue
         final = last_metrics(run)
         step = max(int(steps[-1]) for steps, _, _ in read_metrics(run).values() if len(steps))
-        trials.append({"run": run.name, "setting": result.config, "step": step, "stopped_early": step < probe.steps,
-                       "metric": final.get(search.metric, metrics.get(search.metric))})
-    ranked = sorted((t for t in trials if t.get("metric") is not None), key=lambda t: t["metric"],
-                    reverse=search.mode == "max")
-    summary = {"search": {**search.__dict__, "steps": probe.steps, "seed": seed},
-               "trials": ranked + [t for t in trials if t.get("metric") is None]}
-    if ranked:
-        summary["best"] = ranked[0]
-    (out / "sweep.json").write_text(json.dumps(summary, indent=1))
-    (out / "sweep.md").write_text(format_search(summary) + "\n")
-    runs = [out / t["run"] for t in ranked]
-    if runs:
-        from drivelab.training.plots import plot_runs
-
-        plot_runs(runs, out / "curves.png")
-    return summary
+        trials.append({"run": run.name, "setting": result.config, "step": step, "stopped_early": step < planned_steps,
+                       "metric": final.get(metric, metrics.get(metric))})
+    return trials
 
 
 def _quiet_tune() -> None:
@@ -347,7 +365,7 @@ def _run_trial(config: dict, train: Callable[..., Any]) -> None:
     (``train(cfg, resume=..., progress=False)``, as :func:`drivelab.api.train`)."""
     from ray import tune
 
-    from drivelab.training.checkpoint import list_checkpoints
+    from drivelab.training.outputs.checkpoint import list_checkpoints
 
     data, run_dir = config["data"], Path(config["data"]["run_dir"])
     cfg = build_config(data, where=f"sweep trial {run_dir.name}")
@@ -437,7 +455,7 @@ def plot_sweep(out: Path, trials: list[Trial], summary: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from drivelab.training.plots import plot_runs
+    from drivelab.training.outputs.plots import plot_runs
 
     runs = [out / t.name for t in trials if (out / t.name / "metrics.csv").is_file()]
     if runs:

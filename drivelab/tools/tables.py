@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-# The driving metrics of an evaluation summary (drivelab.training.evaluation.EvalResult.summary),
+# The driving metrics of an evaluation summary (drivelab.training.collection.evaluation.EvalResult.summary),
 # as (key, column label, row label); rates and route completion print as percentages.
 DRIVING_METRICS = (("success_rate", "success", "success rate"), ("crash_rate", "crash", "crash rate"),
                    ("out_of_road_rate", "off road", "out-of-road rate"), ("timeout_rate", "timeout", "timeout rate"),

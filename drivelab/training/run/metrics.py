@@ -1,5 +1,5 @@
 """A run's metrics and progress: update means, the divergence guard, the progress bar and the
-logged rows (``metrics.csv``, TensorBoard, MLflow through :class:`~drivelab.training.tracking.Tracker`).
+logged rows (``metrics.csv``, TensorBoard, MLflow through :class:`~drivelab.training.outputs.tracking.Tracker`).
 
 What one log holds: the means of the finished training episodes (``episode/*``), the means of
 the update metrics recorded since the last log (``loss/*``, ``charts/*``), and the ``perf/*``
@@ -18,9 +18,9 @@ from tqdm.auto import tqdm
 
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
-from drivelab.training.episodes import EpisodeTracker
-from drivelab.training.timing import Timing
-from drivelab.training.tracking import Tracker
+from drivelab.training.outputs.episodes import EpisodeTracker
+from drivelab.training.outputs.tracking import Tracker
+from drivelab.training.run.timing import Timing
 
 
 class RunMetrics:

@@ -16,8 +16,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import NamedTuple
+from typing import TYPE_CHECKING
 
 import gymnasium as gym
 import numpy as np
@@ -26,82 +25,15 @@ from gymnasium.vector import AutoresetMode
 
 from drivelab.config import EnvConfig, TrainConfig
 from drivelab.envs.groups import EnvGroups
-from drivelab.errors import DrivelabError
-from drivelab.training.episodes import stack_infos
-from drivelab.training.nets import ActorCritic, PolicyNetParams, sample
-from drivelab.training.normalize import RunningMeanStd
-from drivelab.training.returns import gae
-from drivelab.training.run import Run
-from drivelab.training.worker_rollouts import PolicyInWorker
+from drivelab.training.collection.worker_rollouts import PolicyInWorker
+from drivelab.training.learning.hyperparams import ActorCriticParams
+from drivelab.training.learning.normalize import RewardScaler
+from drivelab.training.learning.policy_nets import ActorCritic, sample
+from drivelab.training.learning.rollout_buffers import RolloutBatch, RolloutBuffer
+from drivelab.training.outputs.episodes import stack_infos
 
-
-@dataclass
-class ActorCriticParams(PolicyNetParams):
-    """Hyperparameters that A2C and PPO share (each file sets its own defaults where they differ)."""
-    lr: float = 3e-4                  # learning rate (Adam)
-    anneal_lr: bool = True        # linear decay to 0 over the run
-    num_steps: int = 128          # rollout length T per env
-    gamma: float = 0.99               # discount factor
-    gae_lambda: float = 0.95          # GAE lambda (1: Monte-Carlo returns, 0: TD(0))
-    norm_adv: bool = True         # standardise advantages (per minibatch)
-    ent_coef: float = 0.0             # weight of the entropy bonus
-    vf_coef: float = 0.5              # weight of the value loss
-    max_grad_norm: float = 0.5        # clip the global gradient norm to this
-    normalize_obs: bool = False   # running observation normalisation (saved with the weights)
-    normalize_reward: bool = False  # divide rewards by the running std of the discounted return
-    act_in_workers: bool = False  # each env subprocess plays the rollout with its own copy of the policy (see drivelab/training/worker_rollouts.py)
-
-    def validate(self) -> None:
-        super().validate()
-        if self.num_steps < 1:
-            raise DrivelabError(f"config field 'num_steps' must be >= 1, got {self.num_steps}")
-        if not 0 <= self.gae_lambda <= 1 or not 0 <= self.gamma <= 1:
-            raise DrivelabError("config fields 'gamma' and 'gae_lambda' must be in [0, 1]")
-
-    def iteration_steps(self, num_envs: int) -> int:
-        """Env steps of one iteration (a rollout of ``num_steps`` in each env): ``steps`` is
-        rounded up to a multiple of it, so a run ends where its config says."""
-        return self.num_steps * num_envs
-
-
-class RolloutBatch(NamedTuple):
-    """A rollout flattened to B = T * N samples for the update."""
-    obs: torch.Tensor         # (B, *obs_shape)
-    actions: torch.Tensor     # (B,) Discrete, (B, act_dim) Box
-    log_probs: torch.Tensor   # (B,) log pi_old(a|s)
-    values: torch.Tensor      # (B,) V_old(s)
-    advantages: torch.Tensor  # (B,)
-    returns: torch.Tensor     # (B,) critic targets (advantages + values)
-
-
-class RolloutBuffer:
-    """Preallocated (T, N, ...) storage, written in place every step."""
-
-    def __init__(self, num_steps: int, num_envs: int, obs_space: gym.Space, act_space: gym.Space,
-                 device: torch.device):
-        discrete = isinstance(act_space, gym.spaces.Discrete)
-        obs_dtype = torch.uint8 if obs_space.dtype == np.uint8 else torch.float32
-        shape = (num_steps, num_envs)
-        self.obs = torch.zeros(shape + obs_space.shape, dtype=obs_dtype, device=device)
-        self.actions = torch.zeros(shape + (() if discrete else act_space.shape),
-                                   dtype=torch.long if discrete else torch.float32, device=device)
-        self.log_probs = torch.zeros(shape, device=device)
-        self.values = torch.zeros(shape, device=device)
-        # Rewards and episode ends stay in numpy: GAE is a pure numpy function (drivelab.training.returns).
-        self.rewards = np.zeros(shape, np.float32)
-        self.next_values = np.zeros(shape, np.float32)
-        self.terminated = np.zeros(shape, bool)
-        self.dones = np.zeros(shape, bool)
-
-    def batch(self, gamma: float, gae_lambda: float) -> RolloutBatch:
-        advantages, returns = gae(self.rewards, self.values.cpu().numpy(), self.next_values, self.terminated,
-                                  self.dones, gamma, gae_lambda)
-        device = self.values.device
-        return RolloutBatch(
-            obs=self.obs.flatten(0, 1), actions=self.actions.flatten(0, 1), log_probs=self.log_probs.flatten(),
-            values=self.values.flatten(), advantages=torch.as_tensor(advantages, device=device).flatten(),
-            returns=torch.as_tensor(returns, device=device).flatten(),
-        )
+if TYPE_CHECKING:  # the collector calls the run's services; run/ sits above collection/
+    from drivelab.training.run import Run
 
 
 class RolloutCollector:
@@ -116,13 +48,13 @@ class RolloutCollector:
 
     With ``policy_factory`` (``act_in_workers``) the env subprocesses play the rollouts
     themselves, each with a copy of the policy that ``policy_factory(obs_space, act_space)``
-    builds and the trainer's weights of the moment (:mod:`drivelab.training.worker_rollouts`): no round
+    builds and the trainer's weights of the moment (:mod:`drivelab.training.collection.worker_rollouts`): no round
     trip per step. The buffer is filled as if the trainer had stepped the envs.
 
     Episode returns, lengths and driving metrics go to ``run.episodes``; time spent waiting on
     the envs to ``run.timing.env``. With ``scale_rewards`` the rewards are divided by the running
-    std of the discounted return (Engstrom et al. 2020), so the critic's targets keep a stable
-    scale; its statistics are a module (``reward_rms``) to checkpoint with the agent.
+    std of the discounted return (:class:`~drivelab.training.learning.normalize.RewardScaler`);
+    its statistics are a module (``reward_rms``) to checkpoint with the agent.
     """
 
     def __init__(self, env_cfg: EnvConfig, run: Run, *, num_steps: int, gamma: float, gae_lambda: float,
@@ -143,8 +75,7 @@ class RolloutCollector:
         if len(self.envs) > 1:
             seeds = run.rng.integers(0, 2**63 - 1, size=len(self.envs)).tolist()
             self.generators = [torch.Generator(run.device).manual_seed(seed) for seed in seeds]
-        self.reward_rms = RunningMeanStd(()) if scale_rewards else None
-        self.discounted_return = np.zeros(n)
+        self.reward_scaler = RewardScaler(n, gamma) if scale_rewards else None
 
     @classmethod
     def from_config(cls, cfg: TrainConfig, run: Run,
@@ -160,7 +91,7 @@ class RolloutCollector:
 
     def modules(self) -> dict[str, torch.nn.Module]:
         """What a checkpoint must keep of the collector (the reward-scaling statistics)."""
-        return {"reward_rms": self.reward_rms} if self.reward_rms is not None else {}
+        return {"reward_rms": self.reward_scaler.rms} if self.reward_scaler is not None else {}
 
     @torch.no_grad()
     def collect(self, agent: ActorCritic) -> RolloutBatch:
@@ -172,8 +103,8 @@ class RolloutCollector:
         else:
             self._play(agent, buf)
             last_value = agent.value(torch.as_tensor(self.obs, device=buf.values.device)).cpu().numpy()
-        if self.reward_rms is not None:
-            self._scale_rewards(buf)
+        if self.reward_scaler is not None:
+            self.reward_scaler.scale_in_place(buf.rewards, buf.dones)
         buf.next_values[:-1] = np.where(buf.dones[:-1], buf.next_values[:-1], buf.values[1:].cpu().numpy())
         buf.next_values[-1] = np.where(buf.dones[-1], buf.next_values[-1], last_value)
         return buf.batch(self.gamma, self.gae_lambda)
@@ -224,16 +155,8 @@ class RolloutCollector:
             every_env = np.ones(num_envs, bool)
             self.run.episodes.restart(every_env)
             self.envs.reset(self.run.reset_seeds(every_env))
-        device = buf.values.device
         for env, rollout in enumerate(rollouts):
-            buf.obs[:, env] = torch.as_tensor(rollout.obs, device=device)
-            buf.actions[:, env] = torch.as_tensor(rollout.actions, device=device)
-            buf.log_probs[:, env] = torch.as_tensor(rollout.log_probs, device=device)
-            buf.values[:, env] = torch.as_tensor(rollout.values, device=device)
-            buf.rewards[:, env] = rollout.rewards
-            buf.terminated[:, env] = rollout.terminated
-            buf.dones[:, env] = rollout.terminated | rollout.truncated
-            buf.next_values[:, env] = rollout.final_values
+            buf.write_env(env, rollout)
         # Episode bookkeeping step by step, as if the trainer had stepped the envs.
         for t in range(num_steps):
             info = stack_infos([rollout.episode_info.get(t, {}) for rollout in rollouts]) if buf.dones[t].any() else {}
@@ -253,50 +176,5 @@ class RolloutCollector:
         buf.log_probs[t, envs] = dist.log_prob(action)
         buf.values[t, envs] = value
 
-    def _scale_rewards(self, buf: RolloutBuffer) -> None:
-        """Divide the rollout's rewards by the running std of the discounted return.
-
-        The statistics are updated once per rollout (not per step: cheaper, and every reward
-        of a rollout is scaled alike); the per-env discounted returns carry across rollouts.
-        """
-        returns = np.empty_like(buf.rewards, dtype=np.float64)
-        for t in range(len(buf.rewards)):
-            self.discounted_return = self.discounted_return * self.gamma + buf.rewards[t]
-            returns[t] = self.discounted_return
-            self.discounted_return[buf.dones[t]] = 0.0
-        self.reward_rms.update(torch.as_tensor(returns.reshape(-1)))
-        buf.rewards[:] = self.reward_rms.scale(torch.as_tensor(buf.rewards)).numpy()
-
     def close(self) -> None:
         self.envs.close()
-
-
-class EpisodeStorage:
-    """Preallocated (T, N, ...) arrays for rollouts of whole episodes (REINFORCE, GRPO), whose
-    length is not known in advance: T doubles when full, so growth is rare and amortised.
-
-    ``recorded[t, i]`` marks the steps that belong to the batch (envs that finished their share
-    keep stepping, masked, until the others are done); ``tag[t, i]`` is free for the trainer
-    (GRPO stores the group round of each step).
-    """
-
-    def __init__(self, capacity: int, num_envs: int, obs_space: gym.Space, act_space: gym.Space):
-        discrete = isinstance(act_space, gym.spaces.Discrete)
-        shape = (capacity, num_envs)
-        self.obs = np.zeros(shape + obs_space.shape, obs_space.dtype)
-        self.actions = np.zeros(shape + (() if discrete else act_space.shape), np.int64 if discrete else np.float32)
-        self.log_probs = np.zeros(shape, np.float32)
-        self.rewards = np.zeros(shape, np.float32)
-        self.dones = np.zeros(shape, bool)
-        self.recorded = np.zeros(shape, bool)
-        self.tag = np.full(shape, -1, np.int64)
-
-    def ensure(self, t: int) -> None:
-        """Make row t writable."""
-        if t < len(self.rewards):
-            return
-        for name in ("obs", "actions", "log_probs", "rewards", "dones", "recorded", "tag"):
-            old = getattr(self, name)
-            grown = np.zeros((2 * len(old), *old.shape[1:]), old.dtype)
-            grown[: len(old)] = old
-            setattr(self, name, grown)

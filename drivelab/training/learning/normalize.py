@@ -3,6 +3,7 @@ evaluation uses exactly the statistics the policy was trained with."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -38,3 +39,28 @@ class RunningMeanStd(nn.Module):
     def scale(self, x: torch.Tensor) -> torch.Tensor:
         """x / std, without centring (reward scaling keeps the reward's sign)."""
         return x / torch.sqrt(self.var.to(x.dtype) + self.eps)
+
+
+class RewardScaler:
+    """Divides rewards by the running std of the discounted return (Engstrom et al. 2020,
+    "Implementation Matters"), so the critic's targets keep a stable scale whatever the
+    reward's units. The statistics (``rms``) are a module, checkpointed with the agent; the
+    per-env discounted returns carry across rollouts and restart at episode ends."""
+
+    def __init__(self, num_envs: int, gamma: float):
+        self.rms = RunningMeanStd(())
+        self.gamma = gamma
+        self.discounted_return = np.zeros(num_envs)
+
+    def scale_in_place(self, rewards: np.ndarray, dones: np.ndarray) -> None:
+        """Scale a (T, N) rollout of ``rewards`` in place; ``dones`` (T, N) ends the returns.
+
+        The statistics are updated once per rollout (not per step: cheaper, and every reward
+        of a rollout is scaled alike)."""
+        returns = np.empty_like(rewards, dtype=np.float64)
+        for t in range(len(rewards)):
+            self.discounted_return = self.discounted_return * self.gamma + rewards[t]
+            returns[t] = self.discounted_return
+            self.discounted_return[dones[t]] = 0.0
+        self.rms.update(torch.as_tensor(returns.reshape(-1)))
+        rewards[:] = self.rms.scale(torch.as_tensor(rewards)).numpy()

@@ -26,8 +26,8 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from drivelab.version import __version__
 from drivelab.errors import DrivelabError, kill_point
+from drivelab.version import __version__
 
 _STEP_DIR = re.compile(r"^step_(\d{12})$")
 

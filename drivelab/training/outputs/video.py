@@ -1,7 +1,7 @@
 """Videos of evaluation episodes: what people look at first.
 
 :class:`Recorder` films the episodes that env 0 of a vector env plays during
-:func:`drivelab.training.evaluation.run_episodes`, from the env's ``render()`` in ``rgb_array`` mode
+:func:`drivelab.training.collection.evaluation.run_episodes`, from the env's ``render()`` in ``rgb_array`` mode
 (MetaDrive: its pygame top-down view, no 3D assets; Duckietown: its camera; any Gymnasium env:
 its own rgb_array). An overlay (step, speed, return so far, cross-track error where the env
 reports it, the action) makes the video explain itself. Files are written with imageio: MP4

@@ -19,11 +19,11 @@ import uuid
 from collections.abc import Mapping
 from pathlib import Path
 
-from drivelab.version import __version__
-from drivelab.training.checkpoint import list_checkpoints
 from drivelab.config import TrackConfig, config_to_dict
 from drivelab.errors import DrivelabError
-from drivelab.training.plots import plot_runs
+from drivelab.training.outputs.checkpoint import list_checkpoints
+from drivelab.training.outputs.plots import plot_runs
+from drivelab.version import __version__
 
 
 def default_mlflow_uri(runs_root: Path) -> str:

@@ -8,13 +8,14 @@ The sections are reused, so timing allocates nothing per step.
 
 from __future__ import annotations
 
-import functools
 import os
 import platform
 import time
 from pathlib import Path
 
 import torch
+
+from drivelab.training.learning.precision import native_bf16
 
 
 class Section:
@@ -81,22 +82,6 @@ def cpu_model() -> str:
             if line.startswith("model name"):
                 return line.partition(":")[2].strip()
     return platform.processor() or platform.machine()
-
-
-@functools.cache  # asked at every update (offpolicy.update_precision); the answer never changes
-def native_bf16(device: torch.device) -> bool | None:
-    """Whether ``device`` computes bfloat16 in hardware: on x86 CPUs AVX512-BF16 or AMX, on NVIDIA
-    GPUs compute capability 8.0 (Ampere) or newer, on ROCm always; None where torch cannot tell
-    (other CPUs). Without it torch emulates bfloat16 through float32, and a bfloat16 update is
-    slower, not faster (7x slower than float32 on an AVX2-only CPU:
-    benchmarks/results/sac_update_cost_avx2.json)."""
-    if device.type == "cuda":
-        return torch.version.hip is not None or torch.cuda.get_device_capability(device)[0] >= 8
-    if device.type != "cpu" or platform.machine().lower() not in ("x86_64", "amd64"):
-        return None
-    probes = [getattr(torch.cpu, name) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
-              if hasattr(torch.cpu, name)]  # private probes: a torch without them cannot tell
-    return any(probe() for probe in probes) if probes else None
 
 
 def machine() -> dict:

@@ -6,8 +6,6 @@ Shared by every algorithm, so that each algorithm file shows only what is its ow
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-
 import torch
 
 
@@ -79,36 +77,3 @@ def saturated_share(pre_tanh: torch.Tensor) -> torch.Tensor:
 
 
 # ---- applying a loss ----------------------------------------------------------------------
-
-
-def fused_adam(params: Iterable[torch.nn.Parameter], lr: float) -> torch.optim.Adam:
-    """Adam whose step is one fused kernel over all ``params`` (on CPU and CUDA; the default
-    elsewhere, e.g. on the meta device). On CPU torch's default Adam steps each parameter tensor
-    with about ten small ops: at the drive recipe's shapes that was a fifth of a SAC update, and
-    fusing it made the update 8% cheaper (``benchmarks/sac_update_cost.py``). Same algorithm
-    (Kingma & Ba 2015), rounding differs in the last bits. A resumed run keeps the Adam its
-    checkpoint was saved with: the saved param_groups carry ``fused`` (None before 2026-12-02)."""
-    params = list(params)
-    fused = all(p.device.type in ("cpu", "cuda") for p in params)
-    return torch.optim.Adam(params, lr=lr, fused=True if fused else None)
-
-
-def gradient_step(optimizer: torch.optim.Optimizer, loss: torch.Tensor,
-                  clip_params: Iterable[torch.nn.Parameter] | None = None, max_grad_norm: float = float("inf")) -> torch.Tensor | None:
-    """zero_grad, backward, optionally clip the global gradient norm of ``clip_params`` to
-    ``max_grad_norm``, step. Returns the gradient norm before clipping when ``clip_params`` is given."""
-    optimizer.zero_grad()
-    loss.backward()
-    norm = torch.nn.utils.clip_grad_norm_(clip_params, max_grad_norm) if clip_params is not None else None
-    optimizer.step()
-    return norm
-
-
-def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
-    for group in optimizer.param_groups:
-        group["lr"] = lr
-
-
-def linear_decay(start: float, step: int, total: int) -> float:
-    """``start`` decayed linearly to 0 at ``total`` steps: a function of the step, so resume-safe."""
-    return start * max(0.0, 1.0 - step / max(total, 1))

@@ -5,9 +5,9 @@ evaluation env (:func:`eval_env_config`), logged as ``eval/*``. A new best ``eva
 (ties go to the higher return) is kept as ``checkpoints/best`` with its ``eval.json`` and, with
 ``eval.video``, one filmed episode ``RUN/videos/step_<N>.mp4``.
 
-Both backends play :func:`~drivelab.training.evaluation.evaluation_round` and finish in
+Both backends play :func:`~drivelab.training.collection.evaluation.evaluation_round` and finish in
 :meth:`RunEvaluation._finish`. ``local``: the trainer pauses and plays on its own envs. ``ray``:
-an :class:`~drivelab.training.evaluation.EvalActor` plays a CPU copy of the policy while training
+an :class:`~drivelab.training.collection.evaluation.EvalActor` plays a CPU copy of the policy while training
 goes on; the state the copy was taken from is saved as ``checkpoints/.eval_pending``, which becomes
 ``best`` if it wins, and the results are logged at the step the copy was taken.
 """
@@ -31,8 +31,8 @@ from drivelab.config import EnvConfig, TrainConfig
 from drivelab.envs import make_vector_env
 from drivelab.envs.ray_backend import import_ray
 from drivelab.envs.supervised import error_line
-from drivelab.training.evaluation import EvalActor, evaluation_round, new_best
-from drivelab.training.tracking import Tracker
+from drivelab.training.collection.evaluation import EvalActor, evaluation_round, new_best
+from drivelab.training.outputs.tracking import Tracker
 
 
 class RunEvaluation:

@@ -5,32 +5,34 @@ reference training uses).
 Stepping the envs from the trainer costs a round trip per step: the worker sends its
 observation, waits while the trainer runs the policy, and receives the action. On a small
 machine that round trip is dear: the worker idles through the trainer's inference, and the
-trainer's inference, pickling and wake-ups take CPU from the simulators (2 cores, 2 MetaDrive
-workers: PPO trained at 70-80% of the envs' random-action speed, benchmarks/throughput.py).
+trainer's inference, pickling and wake-ups take CPU from the simulators (``benchmarks/throughput.py``
+measures both ways).
 
 Here each env worker holds the policy's network. Once per rollout the trainer sends the current
 weights (``collect``); the worker plays T steps on its own (sampling from its own generator,
 seeded by the env's reset seed, so a rollout does not depend on timing) and returns what the
 rollout buffer needs, including the values for GAE. Episodes end as in ``AutoresetMode.SAME_STEP``
-(:mod:`drivelab.training.rollout`): a terminated step bootstraps nothing, a truncated one from
+(:mod:`drivelab.training.collection.rollout`): a terminated step bootstraps nothing, a truncated one from
 V(final observation), computed in the worker with the same weights.
 
 The off-policy algorithms use :class:`ActorInWorker`: a worker plays a chunk of steps with a copy
 of the actor and its exploration, and returns the transitions (s, a, r, s', terminated,
-truncated) for the replay buffer, while the learner updates (:mod:`drivelab.training.offpolicy`).
+truncated) for the replay buffer, while the learner updates (:mod:`drivelab.training.collection.replay`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple, Protocol
+from typing import NamedTuple
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-from drivelab.training.episodes import is_episode_metric
-from drivelab.training.nets import ActorCritic, OffPolicyAgent, sample
+from drivelab.training.collection.exploration import Exploration
+from drivelab.training.learning.offpolicy_nets import OffPolicyAgent
+from drivelab.training.learning.policy_nets import ActorCritic, sample
+from drivelab.training.outputs.episodes import is_episode_metric
 
 
 class WorkerRollout(NamedTuple):
@@ -112,16 +114,6 @@ class WorkerTransitions(NamedTuple):
     terminated: np.ndarray    # (T,) bool
     truncated: np.ndarray     # (T,) bool
     episode_info: dict[int, dict[str, float]]  # step t -> driving metrics of the episode that ended there
-
-
-class Exploration(Protocol):
-    """How an off-policy agent acts while it trains (:mod:`drivelab.training.offpolicy`)."""
-
-    def __call__(self, agent: OffPolicyAgent, obs: torch.Tensor, step: int) -> np.ndarray:
-        """(N, A) actions in [-1, 1] for (N, ...) observations at env step ``step``."""
-
-    def end_episodes(self, done: np.ndarray) -> None:
-        """The (N,) envs in ``done`` start new episodes (e.g. an Ornstein-Uhlenbeck process restarts)."""
 
 
 class ActorInWorker(gym.Wrapper):

@@ -1,7 +1,7 @@
 """A run's checkpoints: when one is due, writing one (never a diverged network), and the state a
 resumed run continues from (the numpy RNG, the iteration, the best score, the episode window).
 
-The files themselves (safetensors + ``state.json``) are :mod:`drivelab.training.checkpoint`'s.
+The files themselves (safetensors + ``state.json``) are :mod:`drivelab.training.outputs.checkpoint`'s.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ import torch
 
 from drivelab.config import TrainConfig, config_to_dict
 from drivelab.errors import DrivelabError
-from drivelab.training.checkpoint import Checkpoint, save_checkpoint
-from drivelab.training.episodes import EpisodeTracker
+from drivelab.training.outputs.checkpoint import Checkpoint, save_checkpoint
+from drivelab.training.outputs.episodes import EpisodeTracker
 
 # (tensors, JSON-able state) that a trainer saves beside its networks, e.g. a replay buffer.
 ExtraState = Callable[[], tuple[dict[str, torch.Tensor], dict[str, Any]]]

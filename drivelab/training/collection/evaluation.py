@@ -3,7 +3,7 @@
 Episode ``k`` (0-based) is reset with seed ``seed + k``, so an evaluation is reproducible and,
 on MetaDrive, ``MetaDrive-validation-v0`` with ``seed=0`` visits scenarios 0, 1, ..., N-1.
 Loading a checkpoint to evaluate it is :func:`drivelab.api.evaluate_checkpoint`. Evaluation during
-training (:mod:`drivelab.training.run_eval`) plays :func:`evaluation_round`, in the trainer's
+training (:mod:`drivelab.training.run.periodic_evaluation`) plays :func:`evaluation_round`, in the trainer's
 process or in an :class:`EvalActor` (``eval.backend: ray``): the same code either way.
 """
 
@@ -20,8 +20,8 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from drivelab.config import EvalConfig
 from drivelab.envs import EnvConfig, make_vector_env
 from drivelab.errors import DrivelabError, kill_point
-from drivelab.training.episodes import EpisodeTracker
-from drivelab.training.video import Recorder
+from drivelab.training.outputs.episodes import EpisodeTracker
+from drivelab.training.outputs.video import Recorder
 
 
 @dataclass
@@ -46,7 +46,7 @@ def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, determin
                  device: torch.device | str = "cpu", recorder=None) -> EvalResult:
     """Play exactly ``episodes`` episodes (episode k with seed ``seed + k``) on ``envs``, which must
     use ``AutoresetMode.DISABLED``. ``policy`` has ``act(obs, deterministic)`` and ``to_env(action)``.
-    ``recorder`` (:class:`drivelab.training.video.Recorder`) films env 0's episodes: it is handed the
+    ``recorder`` (:class:`drivelab.training.outputs.video.Recorder`) films env 0's episodes: it is handed the
     envs after every reset and step."""
     if episodes < 1:
         raise DrivelabError(f"the number of evaluation episodes must be >= 1, got {episodes}")

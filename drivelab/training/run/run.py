@@ -4,11 +4,11 @@ logging, periodic evaluation, checkpoints and resume. The loop itself lives in e
 
 ``Run`` is the one object a loop receives; it composes small parts, each in its own module:
 
-* :mod:`drivelab.training.run_dir`: the run directory, its lock, ``config.yaml``, seeding;
-* :mod:`drivelab.training.run_metrics` (and :mod:`~drivelab.training.timing`): update means,
+* :mod:`drivelab.training.run.directory`: the run directory, its lock, ``config.yaml``, seeding;
+* :mod:`drivelab.training.run.metrics` (and :mod:`~drivelab.training.run.timing`): update means,
   the divergence guard, the progress bar, ``perf/*``, the tracker;
-* :mod:`drivelab.training.run_eval`: periodic evaluation (local or Ray) and ``checkpoints/best``;
-* :mod:`drivelab.training.run_checkpoints`: when to save, saving, and the resume state.
+* :mod:`drivelab.training.run.periodic_evaluation`: periodic evaluation (local or Ray) and ``checkpoints/best``;
+* :mod:`drivelab.training.run.checkpoints`: when to save, saving, and the resume state.
 
 A loop looks like this::
 
@@ -53,13 +53,14 @@ import torch
 
 from drivelab.config import TrainConfig, fit_steps, resolve_device
 from drivelab.errors import kill_point
-from drivelab.training.checkpoint import Checkpoint, restore
-from drivelab.training.episodes import EpisodeTracker
-from drivelab.training.run_checkpoints import ExtraState, RunCheckpoints
-from drivelab.training.run_dir import open_run_dir, seed_everything
-from drivelab.training.run_eval import RunEvaluation
-from drivelab.training.run_metrics import RunMetrics, check_finite
-from drivelab.training.timing import Timing, native_bf16
+from drivelab.training.learning.precision import native_bf16
+from drivelab.training.outputs.checkpoint import Checkpoint, restore
+from drivelab.training.outputs.episodes import EpisodeTracker
+from drivelab.training.run.checkpoints import ExtraState, RunCheckpoints
+from drivelab.training.run.directory import open_run_dir, seed_everything
+from drivelab.training.run.metrics import RunMetrics, check_finite
+from drivelab.training.run.periodic_evaluation import RunEvaluation
+from drivelab.training.run.timing import Timing
 
 
 class RunEvent(NamedTuple):
@@ -77,7 +78,7 @@ Callback = Callable[[RunEvent], "bool | None"]
 
 def _warn_emulated_bf16(cfg: TrainConfig, device: torch.device) -> None:
     """``bf16_updates`` where the hardware has no bfloat16 arithmetic makes the updates slower, not
-    faster (7x on an AVX2-only CPU: sac_update_cost_avx2.json): one line on stderr, the run goes on as configured."""
+    faster (torch emulates bfloat16 through float32): one line on stderr, the run goes on as configured."""
     if getattr(cfg.algo_params, "bf16_updates", False) is True and native_bf16(device) is False:
         print(f"drivelab: warning: {cfg.algo}.bf16_updates is on, but this machine's {device.type} computes "
               f"bfloat16 only by emulation (x86 CPUs need AVX512-BF16 or AMX, GPUs compute capability 8.0): "
