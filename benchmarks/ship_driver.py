@@ -8,7 +8,9 @@ ones) and keeps the policy alone (``TrainedPolicy.save``: the same tensors). Its
 MetaDrive's protocol (the 200 unseen validation scenarios, start seeds 0-199, default traffic,
 per episode) comes from ``RUN/heldout.json``, and MetaDrive's expert's on the same scenarios from
 the benchmark's JSON, both written by benchmarks/drive_recipe.py; tests/test_drivers.py replays
-the first scenarios with the shipped files. Writes ``drivelab/drivers/NAME/``. Not a test.
+the first scenarios with the shipped files. Writes ``drivelab/drivers/NAME/``: the weights,
+``state.json``, ``card.json`` and ``SHA256SUMS`` (the sha256 of those three, which loading checks,
+so the card cannot be edited unnoticed). Not a test.
 """
 
 from __future__ import annotations

@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import numbers
 import os
+import shlex
 import signal
 import sys
 import threading
@@ -44,18 +46,22 @@ from drivelab.config import (
 )
 from drivelab.envs import env_spaces
 from drivelab.envs.supervised import error_line
-from drivelab.errors import DrivelabError, TrainingCrashed
+from drivelab.errors import DrivelabError, TrainingCrashed, raise_interrupt
 from drivelab.tools.drivers import model_card, shipped_drivers  # noqa: F401  (re-exported: the shipped drivers)
 from drivelab.tools.policies import (  # noqa: F401  (re-exported: the API's loading and evaluation)
     TrainedPolicy,
     baseline_env,
     build_config,
+    check_fits_env,
     checkpoint_config,
+    config_differences,
     evaluate_baseline,
     evaluate_checkpoint,
+    evaluation_row,
     load,
     load_policy,
     policy_from_checkpoint,
+    with_defaults,
 )
 from drivelab.training.collection.evaluation import EvalResult, play, run_episodes  # noqa: F401  (EvalResult re-exported)
 from drivelab.training.outputs.checkpoint import Checkpoint, checkpoint_step, list_checkpoints, load_checkpoint
@@ -69,16 +75,12 @@ def default_run_dir(cfg: TrainConfig) -> str:
     return str(Path("runs") / f"{cfg.algo}-{safe_env}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}")
 
 
-def raise_interrupt(signum, frame) -> None:
-    """SIGTERM (what a cluster scheduler sends) stops a run like Ctrl-C: checkpoint, then stop."""
-    raise KeyboardInterrupt
-
-
 @contextlib.contextmanager
 def stop_signals() -> Iterator[None]:
-    """While a run trains: SIGTERM raises ``KeyboardInterrupt`` like Ctrl-C, so the run stops
-    with a checkpoint of that moment instead of dying with up to ``checkpoint_every`` steps
-    lost; and a SIGINT that the shell ignores (background jobs, ``nohup ... &``) is heard again.
+    """While a run trains: SIGTERM raises :class:`~drivelab.errors.Terminated`, a
+    ``KeyboardInterrupt`` like Ctrl-C's, so the run stops with a checkpoint of that moment
+    instead of dying with up to ``checkpoint_every`` steps lost; and a SIGINT that the shell
+    ignores (background jobs, ``nohup ... &``) is heard again.
     The previous handlers come back afterwards. A SIGTERM handler that the caller installed
     (a cluster launcher's requeue, say) is left alone, and so is everything outside the main
     thread, where Python allows no handlers."""
@@ -104,9 +106,9 @@ class TrainResult(NamedTuple):
 
 def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | Callable[..., gym.Env] | None = None, *,
           steps: int | None = None, seed: int | None = None, num_envs: int | None = None,
-          run_dir: str | Path | None = None, config: str | Path | None = None, resume: bool | str = False,
-          progress: bool = True, callback: Callback | None = None, algorithms: Mapping[str, AlgoSpec] = ALGORITHMS,
-          **overrides: Any) -> TrainResult:
+          run_dir: str | Path | None = None, config: str | Path | None = None,
+          resume: bool | str | os.PathLike | None = False, progress: bool = True, callback: Callback | None = None,
+          algorithms: Mapping[str, AlgoSpec] = ALGORITHMS, **overrides: Any) -> TrainResult:
     """Train an agent and return its run directory and final metrics.
 
     Either a :class:`TrainConfig`, or an algorithm name with an env (an id, or the ``env``
@@ -121,6 +123,7 @@ def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | 
     :data:`~drivelab.config.RESUMABLE_FIELDS` may change (as ``drivelab train --resume``).
     ``resume="auto"`` is the command to requeue on a preemptible cluster: it starts the run
     when ``run_dir`` holds none yet and continues it otherwise (``--resume-if-exists``).
+    ``resume=RUN_DIR`` (a path) is ``run_dir=RUN_DIR, resume=True``, as ``--resume RUN_DIR``.
 
     ``callback(event)`` hears every log, evaluation and checkpoint (a :class:`RunEvent`: its
     ``kind``, ``step``, ``metrics`` and checkpoint ``path``); when it returns False the run
@@ -130,6 +133,7 @@ def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | 
     An unexpected exception inside training leaves the latest checkpoint as it was, writes its
     traceback to ``RUN/error.log`` and is raised as :class:`~drivelab.errors.TrainingCrashed`.
     """
+    resume, run_dir = _resume_of_call(resume, run_dir)
     requeue = resume == "auto"
     cfg = _config_of_call(algo, env, steps=steps, seed=seed, num_envs=num_envs, run_dir=run_dir, config=config,
                           resume=resume, requeue=requeue, overrides=overrides, algorithms=algorithms)
@@ -153,6 +157,26 @@ def train(algo: str | TrainConfig | None = None, env: str | Mapping[str, Any] | 
     return TrainResult(run.dir, metrics)
 
 
+def _resume_of_call(resume: bool | str | os.PathLike | None,
+                    run_dir: str | Path | None) -> tuple[bool | str, str | Path | None]:
+    """:func:`train`'s ``resume`` as False, True or ``"auto"``, with the run directory it names,
+    mirroring the CLI's ``--resume RUN_DIR`` and ``--resume-if-exists``: anything else (``"maybe"``)
+    is one line rather than a truthy value that quietly resumes."""
+    if resume is None or resume is False:
+        return False, run_dir
+    if resume is True or (isinstance(resume, str) and resume == "auto"):
+        return resume, run_dir
+    allowed = "expected True, False, 'auto' or a run directory to continue"
+    if not isinstance(resume, (str, os.PathLike)):
+        raise DrivelabError(f"resume: {allowed}, got {type(resume).__name__} {resume!r}")
+    if not Path(resume).is_dir():
+        raise DrivelabError(f"resume: {allowed}, got {str(resume)!r}, which is no directory")
+    if run_dir is not None and Path(run_dir).resolve() != Path(resume).resolve():
+        raise DrivelabError(f"resume={str(resume)!r} continues that run, run_dir={str(run_dir)!r} names another; "
+                            "give one of them")
+    return True, resume
+
+
 def _config_of_call(algo: str | TrainConfig | None, env: str | Mapping[str, Any] | Callable[..., gym.Env] | None, *,
                     steps: int | None, seed: int | None, num_envs: int | None, run_dir: str | Path | None,
                     config: str | Path | None, resume: bool | str, requeue: bool, overrides: Mapping[str, Any],
@@ -164,6 +188,14 @@ def _config_of_call(algo: str | TrainConfig | None, env: str | Mapping[str, Any]
         if requeue:
             _check_requeue(algo)
         return algo
+    if algo is not None and not isinstance(algo, str):
+        raise DrivelabError(f"algo: expected an algorithm's name ({', '.join(algorithms)}) or a TrainConfig, "
+                            f"got {type(algo).__name__} {algo!r}")
+    if algo is None and config is None and resume is not True:  # the run's own config names it when resumed
+        raise DrivelabError(f"algo: name the algorithm to train ({', '.join(algorithms)}), or pass a TrainConfig "
+                            "or config=FILE that names it")
+    if resume is True and run_dir is None:
+        raise DrivelabError("resume=True continues the run in run_dir: pass run_dir (or resume=RUN_DIR)")
     env = env_id_of(env) if env is not None and not isinstance(env, (str, Mapping)) else env
     arguments = {"algo": algo, "env": {"id": env} if isinstance(env, str) else env, "steps": steps, "seed": seed,
                  "run_dir": None if run_dir is None else str(run_dir), **overrides, "env.num_envs": num_envs}
@@ -183,7 +215,7 @@ def _requeue_status(cfg: TrainConfig) -> tuple[bool, bool]:
 def _check_run_dir_is_free(cfg: TrainConfig, checkpoint: Checkpoint | None) -> None:
     """A run that does not continue a checkpoint must not train into a directory that holds one."""
     if checkpoint is None and any(checkpoint_step(p) > 0 for p in list_checkpoints(cfg.run_dir)):
-        raise DrivelabError(f"run directory {cfg.run_dir} already holds a run; use --resume {cfg.run_dir} "
+        raise DrivelabError(f"run directory {cfg.run_dir} already holds a run; use --resume {shlex.quote(str(cfg.run_dir))} "
                             "(or --resume-if-exists) or another --run-dir")
 
 
@@ -225,8 +257,10 @@ def _train_keeping_evidence(spec: AlgoSpec, cfg: TrainConfig, run: Run) -> None:
     except Exception as exc:  # a bug, or an error drivelab does not know: keep the evidence
         interrupted = True
         log = write_error_log(run.dir, exc)
+        # the command is shell-quoted, so that a run directory with spaces pastes as one argument
+        resume = shlex.join(["drivelab", "train", "--resume", str(run.dir)])
         raise TrainingCrashed(f"training stopped at step {run.step} by {error_line(exc)}; the traceback is in {log}; "
-                              f"the latest checkpoint is intact: continue with drivelab train --resume {run.dir}") from exc
+                              f"the latest checkpoint is intact: continue with {resume}") from exc
     finally:
         run.close(interrupted)
 
@@ -250,7 +284,14 @@ def _checkpoint_to_resume(cfg: TrainConfig) -> Checkpoint | None:
     """The latest checkpoint of ``cfg.run_dir``, checked against ``cfg``; None when the run was
     stopped before its first checkpoint after step 0: nothing was trained, and starting afresh
     is exactly the run it would have been (the step-0 checkpoint is saved after the envs drew
-    their first reset seeds, so continuing from it would not be)."""
+    their first reset seeds, so continuing from it would not be). A run that has no checkpoint
+    although it logged training past step 0 lost them (deleted, moved): refused, since starting
+    afresh would silently throw its training away."""
+    if not list_checkpoints(cfg.run_dir) and _logged_past_step_0(Path(cfg.run_dir)):
+        where = Path(cfg.run_dir) / "checkpoints"
+        missing = "has no checkpoint in checkpoints/" if where.is_dir() else "has no checkpoints/"
+        raise DrivelabError(f"run {cfg.run_dir} {missing} although its metrics.csv logged training after step 0: "
+                            "its checkpoints were deleted or moved; restore them, or train afresh into a new --run-dir")
     if not any(checkpoint_step(p) > 0 for p in list_checkpoints(cfg.run_dir)):
         if list_checkpoints(cfg.run_dir):
             print(f"drivelab: warning: {cfg.run_dir} was stopped before its first checkpoint after step 0; "
@@ -263,13 +304,26 @@ def _checkpoint_to_resume(cfg: TrainConfig) -> Checkpoint | None:
     if checkpoint.step >= cfg.steps:
         raise DrivelabError(f"run {cfg.run_dir} is already at step {checkpoint.step} >= steps {cfg.steps}; "
                             "pass a larger --steps to continue")
-    saved = checkpoint.state.get("config")
-    differences = experiment_differences(config_to_dict(cfg), with_defaults(saved)) if isinstance(saved, dict) else []
+    differences = config_differences(checkpoint, config_to_dict(cfg))  # as eval and export check it
     if differences:
         raise DrivelabError(f"{Path(cfg.run_dir) / 'config.yaml'} does not match the config saved in {checkpoint.path} "
-                            f"(fields {', '.join(differences[:5])}); it was edited or damaged: restore it, or "
-                            "train into a new --run-dir")
+                            f"(fields {', '.join(differences[:5])}); one of them was edited, damaged or copied from "
+                            "another run: restore it, or train into a new --run-dir")
     return checkpoint
+
+
+def _logged_past_step_0(run_dir: Path) -> bool:
+    """Whether ``RUN/metrics.csv`` holds a row of a step after 0. A run saves its step-0 checkpoint
+    before it logs any later step, so such a row means that checkpoints were written."""
+    path = run_dir / "metrics.csv"
+    if not path.is_file():
+        return False
+    with open(path, errors="replace") as f:
+        for line in f:  # rows are "step,time,name,value"; the header and a torn row start otherwise
+            step = line.split(",", 1)[0]
+            if step.isdigit() and int(step) > 0:
+                return True
+    return False
 
 
 def write_error_log(run_dir: Path, exc: BaseException) -> Path:
@@ -309,7 +363,7 @@ def train_config(overrides: Mapping[str, Any], config: str | Path | None = None,
         hint = ("it was stopped before its config was written, so nothing was trained: run the original command "
                 "again (with --resume-if-exists it is safe to requeue)") if Path(resume).is_dir() else "no such directory"
         raise DrivelabError(f"{resume} is not a drivelab run directory (no config.yaml): {hint}")
-    data = read_yaml(saved)
+    data = read_yaml(saved, allow_empty=True)
     if not data:
         raise DrivelabError(f"{saved} is empty (a write was interrupted): the config inside its latest checkpoint "
                             "(checkpoints/step_*/state.json) holds the run's settings")
@@ -321,15 +375,6 @@ def train_config(overrides: Mapping[str, Any], config: str | Path | None = None,
     return build_config(merge_overrides(data, overrides), where=f"config of run {resume}", algorithms=algorithms)
 
 
-def with_defaults(saved: dict) -> dict:
-    """A saved config as data with today's defaults for the fields added since it was written
-    (as is if it no longer parses: the comparison then names what differs)."""
-    try:
-        return config_to_dict(build_config(saved))
-    except DrivelabError:
-        return saved
-
-
 def _check_requeue(cfg: TrainConfig) -> None:
     """A requeued command must describe the run its directory holds (if it holds one)."""
     if cfg.run_dir is None:
@@ -337,7 +382,7 @@ def _check_requeue(cfg: TrainConfig) -> None:
     saved = Path(cfg.run_dir) / "config.yaml"
     if not saved.is_file():
         return
-    differences = experiment_differences(config_to_dict(cfg), with_defaults(read_yaml(saved)))
+    differences = experiment_differences(config_to_dict(cfg), with_defaults(read_yaml(saved, allow_empty=True)))
     if differences:
         raise DrivelabError(f"run directory {cfg.run_dir} holds another experiment: {', '.join(differences[:5])} "
                             f"differ from {saved}; use another --run-dir")
@@ -369,20 +414,41 @@ def make_env(env: str | EnvConfig, **kwargs: Any) -> gym.Env:
     return build(env_cfg)
 
 
-def evaluate(policy: TrainedPolicy, env: str | EnvConfig | gym.Env | None = None, episodes: int = 10,
-             seed: int = 0, num_envs: int = 1, deterministic: bool = True) -> dict[str, float]:
+def evaluate(policy: TrainedPolicy, env: str | EnvConfig | gym.Env | Callable[..., gym.Env] | None = None,
+             episodes: int = 10, seed: int = 0, num_envs: int = 1, deterministic: bool = True) -> dict[str, Any]:
     """Deterministic episodes of ``policy`` (episode k with seed ``seed + k``); returns the dict
-    that ``drivelab eval --json`` prints. ``env``: None (the policy's own env), an env id (where
-    it differs from the training env's, the kwargs but ``vehicle_config`` are dropped, as in
-    ``drivelab eval --env``), an :class:`EnvConfig`, or an env instance."""
+    that ``drivelab eval CHECKPOINT --json`` prints (:func:`evaluation_row`). ``env``: None (the
+    policy's own env), an env id (where it differs from the training env's, the kwargs but
+    ``vehicle_config`` are dropped, as in ``drivelab eval --env``), an env class or a function
+    that returns an env (as :func:`train` takes them), an :class:`EnvConfig`, or an env instance.
+    An env whose spaces are not the policy's is refused before an episode is played."""
+    if not isinstance(policy, TrainedPolicy):
+        raise DrivelabError(f"policy: expected a policy from drivelab.load(...), got {type(policy).__name__}")
+    for argument, value, least in (("episodes", episodes, 1), ("num_envs", num_envs, 1), ("seed", seed, 0)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+            raise DrivelabError(f"{argument}: expected an integer >= {least}, got {value!r}")
     if isinstance(env, gym.Env):
+        name = env.spec.id if env.spec is not None else type(env.unwrapped).__name__
+        check_fits_env(policy, (env.observation_space, env.action_space), name)
         envs = SyncVectorEnv([lambda: env], autoreset_mode=AutoresetMode.DISABLED)
-        return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic).summary()
-    if isinstance(env, EnvConfig):
-        env_cfg = env
-    elif env is None or env == policy.env_config.id:
-        env_cfg = policy.env_config
-    else:
-        env_cfg = policy.env_config.on(env)
+        result = run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic)
+        return evaluation_row(result, name, policy.checkpoint)
+    env_cfg = _evaluation_env(policy, env)
     env_cfg = dataclasses.replace(env_cfg, num_envs=max(1, min(num_envs, episodes)))
-    return play(env_cfg, policy, episodes, seed, deterministic).summary()
+    result = play(env_cfg, policy, episodes, seed, deterministic)
+    return evaluation_row(result, env_cfg.id, policy.checkpoint)
+
+
+def _evaluation_env(policy: TrainedPolicy, env: str | EnvConfig | Callable[..., gym.Env] | None) -> EnvConfig:
+    """The env config that :func:`evaluate` plays for its ``env`` argument, checked against the
+    policy's spaces (the policy's own env needs no check)."""
+    if isinstance(env, EnvConfig):
+        env.validate()
+        env_cfg = env
+    else:
+        env = env_id_of(env) if env is not None and not isinstance(env, str) else env
+        if env is None or env == policy.env_config.id:
+            return policy.env_config
+        env_cfg = policy.env_config.on(env)
+    check_fits_env(policy, env_spaces(env_cfg), env_cfg.id)
+    return env_cfg

@@ -15,23 +15,27 @@ Bad input ends with one line on stderr and exit code 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
+import re
+import shlex
 import signal
 import sys
 import traceback
 from pathlib import Path
 from typing import Any
 
-from drivelab import api
+# Nothing imported here loads torch (the algorithms are imported when their entry in ALGORITHMS is
+# read): the commands import drivelab.api when they run, so that `drivelab --help`, `--version`
+# and `drivelab train --help` answer at once.
 from drivelab.algos import ALGORITHMS
 from drivelab.config import parse_value
 from drivelab.envs.supervised import error_line
-from drivelab.errors import DrivelabError, TrainingCrashed
+from drivelab.errors import DrivelabError, Terminated, TrainingCrashed, raise_interrupt
 from drivelab.tools.baselines import BASELINES
 from drivelab.tools.tables import format_evaluation, format_evaluations
-from drivelab.training.outputs.checkpoint import checkpoint_step
 from drivelab.version import __version__
 
 
@@ -106,6 +110,7 @@ def _sweep_parser(sub) -> None:
     p.add_argument("--ray-address", help="Ray cluster to run on (default: a local Ray instance)")
     p.add_argument("--cpus-per-trial", type=float, default=1.0, help="CPUs Ray reserves for each run")
     p.add_argument("--max-concurrent", type=int, help="at most this many runs at once (default: as the CPUs allow)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (trials done)")
 
 
 def _eval_parser(sub) -> None:
@@ -129,6 +134,7 @@ def _eval_parser(sub) -> None:
     p.add_argument("--video", metavar="FILE", help="record the episodes into one video (.mp4, or .gif); plays on one env")
     p.add_argument("--video-dir", metavar="DIR", help="record one video per episode into DIR (episode_<k>.mp4)")
     p.add_argument("--no-overlay", action="store_true", help="videos without the text overlay")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (episodes done per policy, on stderr)")
     p.add_argument("--mlflow-uri", help="where mlflow:RUN_ID paths live (default: $MLFLOW_TRACKING_URI, else runs/mlflow.db)")
 
 
@@ -148,6 +154,7 @@ def build_parser(train_epilog: str | None = None) -> argparse.ArgumentParser:
     report.add_argument("--out", help="HTML file (default: RUN/report.html for one run, report.html otherwise)")
     report.add_argument("--episodes", type=int, default=10, help="evaluation episodes per policy")
     report.add_argument("--no-baselines", action="store_true", help="skip the reference policies")
+    report.add_argument("--no-progress", action="store_true", help="no progress bar")
     plot = sub.add_parser("plot", help="training curves of runs (seeds of one config: mean and 95%% CI band)")
     plot.add_argument("runs", nargs="+", metavar="RUN")
     plot.add_argument("--metric", action="append", help="a metric to draw, e.g. eval/success_rate (repeatable; "
@@ -184,23 +191,58 @@ def _reward_parser(sub) -> None:
     compare.add_argument("--json", action="store_true")
 
 
+# The config field that each of `drivelab train`'s named flags sets: --num-envs (dest num_envs)
+# sets env.num_envs. (--mlflow and --wandb switch track.mlflow and track.wandb on.)
+TRAIN_FLAGS = {"algo": "algo", "env": "env.id", "steps": "steps", "seed": "seed", "run_dir": "run_dir",
+               "num_envs": "env.num_envs", "actions": "env.action_grid", "mlflow_uri": "track.mlflow_uri",
+               "wandb_project": "track.wandb_project", "ray_address": "ray_address"}
+
+
 def _train_overrides(args: argparse.Namespace, extra: dict[str, Any]) -> dict[str, Any]:
     """The config fields that ``drivelab train``'s flags set (dotted keys), the --section.field flags last."""
-    flags = {
-        "algo": args.algo, "env.id": args.env, "steps": args.steps, "seed": args.seed, "run_dir": args.run_dir,
-        "env.num_envs": args.num_envs, "env.action_grid": args.actions,
-        "track.mlflow": True if args.mlflow else None, "track.mlflow_uri": args.mlflow_uri,
-        "track.wandb": True if args.wandb else None, "track.wandb_project": args.wandb_project,
-        "ray_address": args.ray_address,
-    }
+    flags = {field: getattr(args, dest) for dest, field in TRAIN_FLAGS.items()}
+    flags |= {"track.mlflow": True if args.mlflow else None, "track.wandb": True if args.wandb else None}
     return {k: v for k, v in flags.items() if v is not None} | extra
 
 
+def check_flag_names(extra: dict[str, Any]) -> None:
+    """A --section.field flag that names no config field stops here, with the flag that was
+    probably meant: ``--num_envs`` -> did you mean --num-envs (or --env.num_envs)? (The config's
+    own check names fields, which in a YAML file is right; on the command line a flag is.)"""
+    from drivelab.config import RETIRED_FIELDS, TrainConfig, closest_field, is_field
+
+    for key in extra:
+        section, _, rest = key.partition(".")
+        if rest in RETIRED_FIELDS.get(section, {}):
+            continue  # a removed option: the config says so, and what to do
+        if section in ALGORITHMS:  # --ppo.gamma: a field of that algorithm's hyperparameters
+            if not rest:
+                continue  # a whole section (--ppo '{lr: 0.001}'): the config checks its value
+            cls, path, prefix = ALGORITHMS[section].params, rest, f"{section}."
+        else:
+            cls, path, prefix = TrainConfig, key, ""
+        if is_field(path, cls):
+            continue
+        meant = closest_field(path, cls)
+        if meant is None:
+            listed = f"--algo {section} --help lists its hyperparameters" if prefix else "--help lists the config fields"
+            raise DrivelabError(f"unknown option --{key}; drivelab train {listed}")
+        # the dotted flag of that field, after the named flag that sets it, if one does (--num-envs
+        # sets env.num_envs; --run-dir is run_dir's own)
+        named = next((dest for dest, field in TRAIN_FLAGS.items() if field == prefix + meant), None)
+        flags = [f"--{prefix}{meant}"] if named != prefix + meant else []
+        flags = ([f"--{named.replace('_', '-')}"] if named else []) + flags
+        raise DrivelabError(f"unknown option --{key} (did you mean {' or '.join(flags)}?)")
+
+
 def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
+    from drivelab import api
+
     if args.resume:
         args.resume = _local_run(args.resume, args.mlflow_uri, args.run_dir)
     if args.resume and args.resume_if_exists:
         raise DrivelabError("give --resume RUN_DIR or --resume-if-exists (with --run-dir), not both")
+    check_flag_names(extra)
     cfg = api.train_config(_train_overrides(args, extra), args.config, resume=args.resume,
                            if_exists=args.resume_if_exists)
     resume = "auto" if args.resume_if_exists else bool(args.resume)
@@ -209,11 +251,14 @@ def cmd_train(args: argparse.Namespace, extra: dict[str, Any]) -> int:
     if shown:
         print("last logged: " + ", ".join(f"{k} {v:.3g}" for k, v in shown))
     print(f"run saved in {run_dir} (config.yaml, metrics.csv, tb/, checkpoints/)")
-    print(f"  evaluate: drivelab eval {run_dir} --episodes 10    watch: tensorboard --logdir {run_dir}/tb")
+    # the next commands, shell-quoted: a run directory with spaces pastes as one argument
+    evaluate = shlex.join(["drivelab", "eval", str(run_dir), "--episodes", "10"])
+    print(f"  evaluate: {evaluate}    watch: {shlex.join(['tensorboard', '--logdir', str(Path(run_dir) / 'tb')])}")
     return 0
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
+    from drivelab import api
     from drivelab.tools.sweep import format_search, format_summary, load_search, load_sweep, run_search, run_sweep
 
     out = Path(args.out or Path("runs") / f"sweep-{Path(args.config).stem}")
@@ -224,7 +269,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             raise DrivelabError("give --grid or --space (a search), not both")
         base, search, seed = searched
         summary = run_search(base, search, seed, out, train=api.train, ray_address=args.ray_address,
-                             cpus_per_trial=args.cpus_per_trial, max_concurrent=args.max_concurrent)
+                             cpus_per_trial=args.cpus_per_trial, max_concurrent=args.max_concurrent,
+                             progress=not args.no_progress)
         print(format_search(summary))
         if "best" in summary:
             best = summary["best"]
@@ -233,7 +279,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         return 0 if "best" in summary else 1
     base, grid, seeds = load_sweep(args.config, args.grid, args.seeds, args.steps, env=args.env)
     summary = run_sweep(base, grid, seeds, out, train=api.train, ray_address=args.ray_address,
-                        cpus_per_trial=args.cpus_per_trial, max_concurrent=args.max_concurrent)
+                        cpus_per_trial=args.cpus_per_trial, max_concurrent=args.max_concurrent,
+                        progress=not args.no_progress)
     print(format_summary(summary))
     print(f"sweep saved in {out} (sweep.json, sweep.md, curves.png{', final.png' if (out / 'final.png').is_file() else ''}, "
           "one run directory per setting and seed)")
@@ -244,6 +291,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    from drivelab import api
+
     if not args.path and not args.policy:
         raise DrivelabError("drivelab eval needs a run or checkpoint directory, or --policy NAME for a baseline")
     kwargs = _env_kwargs(args.env_kwarg)
@@ -258,13 +307,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
     for path in args.path:
         result, env_cfg, ckpt = api.evaluate_checkpoint(path, args.episodes, args.env, kwargs, args.num_envs,
                                                         args.seed, deterministic=not args.stochastic,
-                                                        recorder=_recorder(args))
-        rows.append({**result.summary(), "env": env_cfg.id, "checkpoint": str(ckpt), "step": checkpoint_step(ckpt)})
+                                                        recorder=_recorder(args), progress=not args.no_progress)
+        rows.append(api.evaluation_row(result, env_cfg.id, ckpt))  # the dict drivelab.evaluate returns
     if args.policy:
         base = api.baseline_env(env_cfg, args.env, kwargs, num_envs=args.num_envs or 2)
         for name in args.policy:
             rows.append({**api.evaluate_baseline(name, base, args.episodes, args.seed, _recorder(args),
-                                                 deterministic=not args.stochastic).summary(),
+                                                 deterministic=not args.stochastic,
+                                                 progress=not args.no_progress).summary(),
                          "env": base.id, "policy": name})
     nonfinite = [f"{k}={v}" for row in rows for k, v in row.items() if isinstance(v, float) and not math.isfinite(v)]
     if args.json:  # always valid JSON: a non-finite number is null
@@ -337,7 +387,9 @@ def cmd_reward(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     from drivelab.tools.report import write_report
 
-    print(f"wrote {write_report(args.runs, args.out, args.episodes, baselines=not args.no_baselines)}")
+    path = write_report(args.runs, args.out, args.episodes, baselines=not args.no_baselines,
+                        progress=not args.no_progress)
+    print(f"wrote {path}")
     return 0
 
 
@@ -350,6 +402,8 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    from drivelab import api
+
     path = api.load(args.path).export(args.out, args.format)
     print(f"wrote {path} and {Path(args.out) / 'policy.json'}")
     return 0
@@ -403,26 +457,67 @@ def algo_help(name: str) -> str:
 
     spec = ALGORITHMS[name]
     lines = [f"{name}: {spec.summary}", f"hyperparameters (--{name}.FIELD VALUE, or the '{name}:' section of a config):"]
-    for field, kind, default, meaning in field_docs(spec.params):
-        meaning = meaning.split(". ")[0].split(" (")[0] if len(meaning) > 80 else meaning
-        lines.append(f"  {field:<20} {kind:<14} {default!s:<12} {meaning}")
+    lines += [_field_line(*row) for row in field_docs(spec.params)]
     return "\n".join(lines)
+
+
+def config_help() -> str:
+    """Every field of a run's config but the hyperparameters, one line each: name, type, default,
+    meaning. Made from the dataclasses (drivelab/config.py, drivelab/envs/config.py) and the
+    comments beside their fields, so the help lists exactly the fields the config has."""
+    from drivelab.config import TrainConfig, field_docs
+
+    top, sections = [], []
+    for name, kind, default, meaning in field_docs(TrainConfig):
+        if dataclasses.is_dataclass(default):  # a section (env, eval, track): its fields, dotted
+            sections += [_field_line(f"{name}.{field}", *rest) for field, *rest in field_docs(type(default))]
+        elif name != "algo_params":  # the hyperparameters: --algo ALGO --help
+            top.append(_field_line(name, kind, default, meaning))
+    title = "config fields (--FIELD VALUE or --SECTION.FIELD VALUE; - or _ alike; or the same in a --config file):"
+    return "\n".join([title, *top, *sections])
+
+
+def train_help(algo: str | None) -> str:
+    """The epilog of ``drivelab train --help``: the config fields, then ALGO's hyperparameters
+    (with ``--algo ALGO``) or how to list them."""
+    algo_part = algo_help(algo) if algo in ALGORITHMS else "drivelab train --algo ALGO --help lists ALGO's hyperparameters"
+    return config_help() + "\n\n" + algo_part
+
+
+def _field_line(field: str, kind: str, default: Any, meaning: str) -> str:
+    """One field in a help text: name, type, default and the first sentence of its meaning,
+    shortened when long (its parentheses left out, then what follows a semicolon, then cut)."""
+    meaning = re.split(r"(?<!e\.g)(?<!i\.e)\. ", meaning)[0].rstrip(".")  # "e.g. " ends no sentence
+    if len(meaning) > 70:
+        meaning = re.sub(r" \([^()]*\)", "", meaning)
+    if len(meaning) > 80:
+        meaning = meaning.split("; ")[0]
+    if len(meaning) > 80:
+        meaning = meaning[:meaning.rfind(" ", 0, 76)] + " ..."
+    return f"  {field:<22} {kind:<14} {default!s:<12} {meaning}"
+
+
+def _train_epilog(argv: list[str]) -> str | None:
+    """For ``drivelab train [--algo ALGO] --help``: the config fields (and ALGO's
+    hyperparameters); None otherwise, so that no other command pays for reading them."""
+    if argv[:1] != ["train"] or not ("-h" in argv or "--help" in argv):
+        return None
+    algo = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--algo"), None) or \
+        next((a.split("=", 1)[1] for a in argv if a.startswith("--algo=")), None)
+    return train_help(algo)
 
 
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
-    algo = None
-    if argv[:1] == ["train"] and ("-h" in argv or "--help" in argv):  # --algo X --help: its hyperparameters
-        algo = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--algo"), None) or \
-            next((a.split("=", 1)[1] for a in argv if a.startswith("--algo=")), None)
-    parser = build_parser(train_epilog=algo_help(algo) if algo in ALGORITHMS else None)
-    # Every command stops on SIGTERM as on Ctrl-C (a run with a checkpoint, see api.stop_signals),
-    # and hears Ctrl-C even when started from a shell that ignores SIGINT for background jobs.
-    signal.signal(signal.SIGTERM, api.raise_interrupt)
-    signal.signal(signal.SIGINT, signal.default_int_handler)
     # --debug may stand anywhere (after `train`, its other flags are config fields)
     debug = "--debug" in argv
-    args, unknown = parser.parse_known_args([a for a in argv if a != "--debug"])
+    argv = [a for a in argv if a != "--debug"]
+    parser = build_parser(train_epilog=_train_epilog(argv))
+    # Every command stops on SIGTERM as on Ctrl-C (a run with a checkpoint, see api.stop_signals),
+    # and hears Ctrl-C even when started from a shell that ignores SIGINT for background jobs.
+    signal.signal(signal.SIGTERM, raise_interrupt)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    args, unknown = parser.parse_known_args(argv)
     args.debug = debug
     run_dir = getattr(args, "resume", None) or getattr(args, "run_dir", None)
     try:
@@ -442,10 +537,11 @@ def main(argv: list[str] | None = None) -> None:
     except BrokenPipeError:  # output piped into `head` and the like
         sys.stderr.close()
         sys.exit(0)
-    except KeyboardInterrupt:
-        hint = f"; continue with: drivelab train --resume {run_dir}" if run_dir else ""
-        print(f"\ndrivelab: interrupted{hint}", file=sys.stderr)
-        sys.exit(130)
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (raised as Terminated, a KeyboardInterrupt)
+        hint = f"; continue with: {shlex.join(['drivelab', 'train', '--resume', str(run_dir)])}" if run_dir else ""
+        print(f"\ndrivelab: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}{hint}", file=sys.stderr)
+        # as a shell reports a process killed by the signal: 128 + its number
+        sys.exit(128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT))
     except Exception as exc:  # noqa: BLE001 - outside training (loading, evaluating): still one line
         _print_error(f"{error_line(exc)} (drivelab --debug ... shows the traceback)", exc, args.debug)
         sys.exit(1)

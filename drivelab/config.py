@@ -25,7 +25,7 @@ import math
 import os
 import re
 import sys
-from collections.abc import Mapping
+from collections.abc import Hashable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,8 +40,8 @@ from drivelab.errors import DrivelabError
 @dataclass
 class EvalConfig:
     """Periodic deterministic evaluation during training, in its own env (subprocess for MetaDrive)."""
-    every: int = 0                 # env steps between evaluations (0: never)
-    episodes: int = 10
+    every: int = 0                 # env steps between evaluations (0: never, and no checkpoints/best)
+    episodes: int = 10             # deterministic episodes per evaluation
     # Also evaluate when the run ends (steps or max_minutes reached) between two evaluations, so
     # that checkpoints/best weighs the final policy too (with eval.every > 0).
     final: bool = False
@@ -50,9 +50,9 @@ class EvalConfig:
     # scenarios) and `kwargs` is used instead; wrappers (action grid, filters, reward) and the
     # kwargs that shape the observation (MetaDrive's vehicle_config) are kept.
     env_id: str | None = None
-    kwargs: dict[str, Any] = field(default_factory=dict)
+    kwargs: dict[str, Any] = field(default_factory=dict)   # the env kwargs with env_id (replacing the training env's)
     seed: int = 10_000             # episode k is reset with seed + k
-    num_envs: int = 1
+    num_envs: int = 1              # envs that play the evaluation episodes in parallel
     # The checkpoint with the best value of this eval/* metric is kept as checkpoints/best.
     best_metric: str = "return_mean"
     # On a new best, film one episode: RUN/videos/step_<N>.mp4 (needs the env's rgb_array render).
@@ -64,28 +64,28 @@ class EvalConfig:
 
 @dataclass
 class TrackConfig:
-    mlflow: bool = False
+    mlflow: bool = False              # also track with MLflow
     # None: the store shared by the runs beside this one, sqlite:///<run dir's parent>/mlflow.db
     # (runs/mlflow.db for runs/NAME), with artifacts in <run dir's parent>/mlartifacts.
     mlflow_uri: str | None = None
-    experiment: str = "drivelab"
+    experiment: str = "drivelab"      # the MLflow experiment
     # Weights & Biases (pip install 'drivelab[wandb]'): files in RUN/wandb. Without an API key
     # (`wandb login`, WANDB_API_KEY) it logs offline; `wandb sync RUN/wandb/offline-run-*` uploads later.
     wandb: bool = False
-    wandb_project: str = "drivelab"
-    wandb_entity: str | None = None
+    wandb_project: str = "drivelab"   # the W&B project
+    wandb_entity: str | None = None   # the W&B team or user (None: your default)
     wandb_mode: str | None = None     # online | offline | disabled; None: WANDB_MODE, else online with a key
 
 
 @dataclass
 class TrainConfig:
-    algo: str = "reinforce"
+    algo: str = "reinforce"           # reinforce, a2c, ppo, grpo, ddpg, td3 or sac
     env: EnvConfig = field(default_factory=EnvConfig)
-    steps: int = 100_000
+    steps: int = 100_000              # env steps to train for (all envs together)
     # Stop (with a final checkpoint) after this much training time, even if `steps` is not reached.
     max_minutes: float | None = None
-    seed: int = 0
-    run_dir: str | None = None
+    seed: int = 0                     # seeds torch, numpy and the envs' resets
+    run_dir: str | None = None        # None: runs/<algo>-<env>-s<seed>-<time>
     # Intra-op threads for torch. 1 is fastest when env subprocesses share a few cores.
     torch_threads: int = 1
     # Intra-op threads inside gradient updates (None: torch_threads). The env workers wait
@@ -94,8 +94,8 @@ class TrainConfig:
     # stream than with None; keep None when other jobs share the cores.
     update_threads: int | None = None
     device: str = "cpu"               # cpu, cuda[:N], or auto (cuda when torch sees one)
-    checkpoint_every: int = 50_000
-    keep_checkpoints: int = 3
+    checkpoint_every: int = 50_000    # env steps between checkpoints (also one at the end)
+    keep_checkpoints: int = 3         # how many step_<N> checkpoints are kept (checkpoints/best besides)
     # Episodes in the recent-return window (progress bar and logged means).
     stats_window: int = 20
     # Env steps between metric logs (the last iteration's or the means since the last log).
@@ -123,10 +123,10 @@ def _from_dict(cls: type, data: dict, where: str) -> Any:
     try:
         return dacite.from_dict(cls, data, config=_DACITE)
     except dacite.UnexpectedDataError as exc:
-        names = ", ".join(sorted(exc.keys))
-        close = difflib.get_close_matches(sorted(exc.keys)[0], _field_names(cls), n=1)
-        hint = f" (did you mean {close[0]}?)" if close else ""
-        raise DrivelabError(f"{where}: unknown field(s) {names}{hint}") from None
+        names = unknown_fields(data, cls) or sorted(exc.keys)  # dotted: env.num_env, not num_env
+        meant = closest_field(names[0], cls)
+        hint = f" (did you mean {meant}?)" if meant else ""
+        raise DrivelabError(f"{where}: unknown field(s) {', '.join(names)}{hint}") from None
     except dacite.WrongTypeError as exc:
         raise DrivelabError(
             f"{where}: field '{exc.field_path}' expects {_type_name(exc.field_type)}, got {exc.value!r}"
@@ -135,39 +135,87 @@ def _from_dict(cls: type, data: dict, where: str) -> Any:
         raise DrivelabError(f"{where}: {exc}") from None
 
 
-def _field_names(cls: type) -> list[str]:
-    """The field names of a config dataclass and of the dataclasses nested in it."""
-    names = []
+def _section(f: dataclasses.Field) -> type | None:
+    """The dataclass of a field that holds a nested section (``env``, ``eval``, ``track``), else None."""
+    kind = f.default_factory
+    return kind if isinstance(kind, type) and dataclasses.is_dataclass(kind) else None
+
+
+def field_paths(cls: type, prefix: str = "") -> list[str]:
+    """The dotted paths of the fields of a config dataclass and of the sections nested in it, in
+    the order they are declared: ``algo``, ``env``, ``env.id``, ``env.num_envs``, ..."""
+    paths = []
     for f in dataclasses.fields(cls):
-        names.append(f.name)
-        if isinstance(f.default_factory, type) and dataclasses.is_dataclass(f.default_factory):
-            names += _field_names(f.default_factory)
-    return names
+        paths.append(prefix + f.name)
+        if _section(f) is not None:
+            paths += field_paths(_section(f), f"{prefix}{f.name}.")
+    return paths
+
+
+def is_field(path: str, cls: type) -> bool:
+    """Whether a dotted path names a field of ``cls``: a section's field (``env.num_envs``), or a
+    key inside a field that holds a free-form mapping (``env.kwargs.traffic_density``)."""
+    name, _, rest = path.partition(".")
+    f = next((f for f in dataclasses.fields(cls) if f.name == name), None)
+    if f is None:
+        return False
+    return not rest or _section(f) is None or is_field(rest, _section(f))
+
+
+def unknown_fields(data: Mapping, cls: type, prefix: str = "") -> list[str]:
+    """The dotted paths of the keys in nested config data that name no field of ``cls``."""
+    sections = {f.name: _section(f) for f in dataclasses.fields(cls)}
+    unknown = []
+    for key, value in data.items():
+        if key not in sections:
+            unknown.append(f"{prefix}{key}")
+        elif sections[key] is not None and isinstance(value, Mapping):  # a section: its keys too
+            unknown += unknown_fields(value, sections[key], f"{prefix}{key}.")
+    return unknown
+
+
+def closest_field(path: str, cls: type) -> str | None:
+    """The field that a mistyped dotted ``path`` most likely meant, as a dotted path: the closest
+    name in the same section (``env.num_env`` -> ``env.num_envs``), else the same or a close name
+    in any section (``num_envs`` -> ``env.num_envs``, the first section that has one); None if
+    nothing is close."""
+    paths = field_paths(cls)
+    section, _, name = path.rpartition(".")
+    siblings = [p.rpartition(".")[2] for p in paths if p.rpartition(".")[0] == section]
+    close = difflib.get_close_matches(name, siblings, n=1)
+    if close:
+        return f"{section}.{close[0]}" if section else close[0]
+    leaves = [p.rpartition(".")[2] for p in paths]
+    close = difflib.get_close_matches(name, leaves, n=1)
+    return paths[leaves.index(close[0])] if close else None
 
 
 def field_docs(cls: type) -> list[tuple[str, str, Any, str]]:
-    """(name, type, default, meaning) of each field of a hyperparameter dataclass, the meaning
-    taken from the comment beside or above the field in its source (base classes included)."""
+    """(name, type, default, meaning) of each field of a config dataclass, the meaning taken
+    from the comment beside or above the field in its source (base classes included). A comment
+    above a group of fields (no blank line between them) is the meaning of each field in the group
+    that has no comment of its own."""
     import inspect
-    import re
 
     comments: dict[str, str] = {}
     for klass in reversed(cls.__mro__):
         if not dataclasses.is_dataclass(klass):
             continue
-        above: list[str] = []
+        above: list[str] = []   # the comment lines read since the last field
+        group = ""              # the comment above the fields just read, for the next ones
         for line in inspect.getsource(klass).splitlines():
             stripped = line.strip()
             match = re.match(r"(\w+)\s*:\s*[^=]+(?:=.*?)?(?:#\s*(.*))?$", stripped)
             if stripped.startswith("#"):
                 above.append(stripped.lstrip("# "))
             elif match and not stripped.startswith(("def ", "class ", "return")):
-                text = match.group(2) or " ".join(above)
+                group = " ".join(above) or group
+                text = match.group(2) or group
                 if text or match.group(1) not in comments:
                     comments[match.group(1)] = text
                 above = []
             else:
-                above = []
+                above, group = [], ""
     rows = []
     for f in dataclasses.fields(cls):
         default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
@@ -256,18 +304,47 @@ def resolve_config_file(name: str | Path) -> Path:
     raise DrivelabError(f"config file not found: {name}{hint}")
 
 
-def read_yaml(path: str | Path) -> dict:
+class UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key written twice in one mapping. Plain PyYAML keeps the
+    last value without a word, so a file with ``lr: 0.1`` and, further down, ``lr: 0.001`` would
+    train with whichever came last."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *base` merges a mapping: overriding it is the point
+                continue
+            key = self.construct_object(key_node, deep=deep)
+            if not isinstance(key, Hashable):
+                continue  # a list as a key: SafeLoader refuses it itself below
+            if key in seen:  # the line of the second one, in read_yaml's message
+                raise yaml.constructor.ConstructorError(None, None, f"key '{key}' appears twice in one mapping; keep one",
+                                                        key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def read_yaml(path: str | Path, allow_empty: bool = False) -> dict:
+    """The mapping of fields in a YAML file (a config, a reward config, a run's ``config.yaml``).
+
+    An empty file (nothing, or comments only) is refused, since reading it as "no fields" would
+    quietly train the defaults; ``allow_empty`` returns ``{}`` instead, for a caller with a better
+    message of its own. A key written twice in one mapping is refused (:class:`UniqueKeyLoader`)."""
     path = Path(path)
     if not path.is_file():
         raise DrivelabError(f"config file not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.load(path.read_text(), Loader=UniqueKeyLoader)
     except (UnicodeDecodeError, ValueError) as exc:
         raise DrivelabError(f"config file {path} is not a text YAML file ({type(exc).__name__})") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark else ""
         raise DrivelabError(f"config file {path}{where}: invalid YAML ({getattr(exc, 'problem', exc)})") from None
+    if data is None:  # no document at all: an empty file, or comments only
+        if allow_empty:
+            return {}
+        raise DrivelabError(f"config file {path} is empty: it sets no field (to train the defaults, leave out --config)")
     if not isinstance(data, dict):
         raise DrivelabError(f"config file {path}: expected a mapping of fields at the top level")
     return data
@@ -319,16 +396,29 @@ def parse_config(data: dict, algo_params: Mapping[str, type], where: str = "conf
     return cfg
 
 
+# Rounding ``steps`` up to one iteration may lengthen a short run several times over (a smoke
+# test of steps=64 becomes PPO's default rollout of 4 envs x 128 steps, with a note); an iteration
+# more than this many times ``steps`` is a mistake (--num-envs 10000 turning --steps 500 into
+# 1,280,000 env steps) and is refused.
+MAX_ITERATION_OVER_STEPS = 10
+
+
 def fit_steps(cfg: TrainConfig) -> None:
     """Round ``steps`` up to the algorithm's iteration (PPO and A2C: a rollout of ``num_steps``
     in each env; DDPG, TD3 and SAC: one step of each env), with one line, so that the run ends
-    at the number its config, progress bar and report state. REINFORCE and GRPO update on whole
+    at the number its config, progress bar and report state; an iteration far beyond ``steps``
+    (:data:`MAX_ITERATION_OVER_STEPS`) is refused in one line. REINFORCE and GRPO update on whole
     episodes: their last batch is cut to the steps left, and the run ends with its episodes.
     Only training calls it (a saved config evaluates as it was written)."""
     iteration_steps = getattr(cfg.algo_params, "iteration_steps", None)
     if iteration_steps is None or cfg.steps == 0:
         return
     size = iteration_steps(cfg.env.num_envs)
+    if size > MAX_ITERATION_OVER_STEPS * cfg.steps:
+        rollout = f" x {cfg.algo}.num_steps" if hasattr(cfg.algo_params, "num_steps") else ""  # PPO, A2C
+        raise DrivelabError(f"config: one {cfg.algo} iteration collects env.num_envs{rollout} = {size:,} env steps, "
+                            f"more than {MAX_ITERATION_OVER_STEPS} times steps ({cfg.steps:,}): "
+                            f"lower env.num_envs{rollout.replace(' x ', ' or ')}, or raise steps")
     rounded = -(-cfg.steps // size) * size
     if rounded != cfg.steps:
         # stdout: a note, not a warning (stderr stays for errors and warnings, one line each)
@@ -398,6 +488,8 @@ def _validate(cfg: TrainConfig) -> None:
         if not ok:
             raise DrivelabError(f"config field '{name}' {message}")
     if cfg.run_dir is not None:
+        if not str(cfg.run_dir).strip():
+            raise DrivelabError("config field 'run_dir' is empty: name a directory for the run")
         _check_writable(Path(cfg.run_dir))
     _check_hyperparameters(cfg.algo, cfg.algo_params)
     cfg.env.validate()
@@ -427,8 +519,28 @@ def _check_writable(run_dir: Path) -> None:
     if run_dir.exists() and not run_dir.is_dir():
         raise DrivelabError(f"config field 'run_dir': {run_dir} exists and is not a directory")
     existing = next((p for p in [run_dir, *run_dir.resolve().parents] if p.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise DrivelabError(f"config field 'run_dir': {existing} is a file, so {run_dir} cannot be created under it")
     if existing is not None and not os.access(existing, os.W_OK):
         raise DrivelabError(f"config field 'run_dir': {existing} is not writable")
+
+
+def check_output_path(path: str | Path, what: str, directory: bool = False) -> None:
+    """``path`` can be created and written: a file, or with ``directory`` a directory. Checked
+    before any work starts, so that an evaluation or an export ends in one line naming ``what``
+    (``--video``, ``export --out``) rather than in a traceback once its results are ready. The
+    same cases as a run directory's (:func:`_check_writable`): the path is of the other kind, a
+    component above it is a file, or the nearest existing directory is not writable."""
+    path = Path(path)
+    if path.exists() and path.is_dir() != directory:
+        kind = "is not a directory" if directory else "is a directory"
+        raise DrivelabError(f"{what}: {path} exists and {kind}")
+    # the path itself, or the nearest existing directory above it, in which it will be created
+    existing = next(p for p in [path, *path.resolve().parents] if p.exists())  # the root always exists
+    if existing != path and not existing.is_dir():
+        raise DrivelabError(f"{what}: {existing} is a file, so {path} cannot be created under it")
+    if not os.access(existing, os.W_OK):
+        raise DrivelabError(f"{what}: {existing} is not writable")
 
 
 def config_to_dict(cfg: TrainConfig) -> dict:

@@ -1,5 +1,6 @@
 """What goes wrong, on purpose or not: the one exception type that the CLI turns into a one-line
-message instead of a traceback, and the hook that lets tests kill a run at a named phase."""
+message instead of a traceback, SIGTERM as an exception (:class:`Terminated`), and the hook that
+lets tests kill a run at a named phase."""
 
 from __future__ import annotations
 
@@ -20,6 +21,18 @@ class TrainingCrashed(DrivelabError):
     """An unexpected exception escaped training. Its message is one line naming the error, the
     run's ``error.log`` (which holds the traceback) and the command that continues the run; the
     original exception is its ``__cause__``. The CLI exits with 1 for it (2 is for bad input)."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (what a cluster scheduler or ``kill`` sends), raised where Ctrl-C raises
+    ``KeyboardInterrupt``, so that a run stops the same way, with a checkpoint. It is a
+    ``KeyboardInterrupt``, so every handler of Ctrl-C handles it too; the CLI tells the two apart
+    only for its exit code: 128 + 15 = 143 for SIGTERM, 128 + 2 = 130 for Ctrl-C, as a shell does."""
+
+
+def raise_interrupt(signum, frame) -> None:
+    """The SIGTERM handler of a run (:func:`drivelab.api.stop_signals`, the CLI): stop like Ctrl-C."""
+    raise Terminated
 
 
 # Where a run can be killed on purpose (``DRIVELAB_KILL_AT=PHASE`` or ``PHASE:N``, the N-th time

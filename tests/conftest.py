@@ -6,6 +6,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
+from drivelab.algos import ALGORITHMS
 from drivelab.envs import worker_start_method
 from flaky_env import importable_env
 from processes import METADRIVE_ID, run_drivelab
@@ -25,12 +26,15 @@ def fork_server_with_metadrive():
     """Start this pytest process's fork server (Linux) as a MetaDrive run would, with MetaDrive
     imported: most of the suite's subprocess envs are MetaDrive's, so each forks in under a second
     instead of importing it again (6 s of CPU on a 2 GHz core). Left to itself, the server would
-    take the preloads of whichever env the first test happens to build. It imports drivelab's CLI
-    (and so torch) too, for the CLI runs of :func:`run_drivelab`, and torch._dynamo, which torch
-    imports when a run builds its first optimizer (2.7 s of CPU on a 2 GHz core)."""
+    take the preloads of whichever env the first test happens to build. It imports drivelab's CLI,
+    its API and the algorithms (and so torch: the CLI itself imports them only when a command
+    runs) too, for the CLI runs of :func:`run_drivelab`, and torch._dynamo, which torch imports
+    when a run builds its first optimizer (2.7 s of CPU on a 2 GHz core)."""
     if worker_start_method(METADRIVE_ID) == "forkserver":
         env_modules = multiprocessing.forkserver._forkserver._preload_modules
-        multiprocessing.set_forkserver_preload([*env_modules, "drivelab.cli", "torch._dynamo"])
+        algorithms = [f"drivelab.algos.{name}" for name in ALGORITHMS]
+        multiprocessing.set_forkserver_preload([*env_modules, "drivelab.cli", "drivelab.api", *algorithms,
+                                                "torch._dynamo"])
         multiprocessing.forkserver.ensure_running()
 
 

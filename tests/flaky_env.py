@@ -5,10 +5,10 @@ Gymnasium's "module:EnvId" form imports this module first, which registers ``Fla
 process that builds the env (a CLI subprocess, a spawned env worker, a Ray actor) therefore needs
 this directory on its path (``PYTHONPATH``, or the parent's ``sys.path`` for spawned workers).
 
-CartPole whose ``step`` raises, kills its process, or hangs once, at step ``at_step`` of the
+CartPole (or the env ``base``) whose ``step`` raises, kills its process, or hangs once, at step ``at_step`` of the
 worker's life, the first time it runs with a given ``marker`` file (the file records that the
-failure happened, so the restarted worker behaves); or, with ``fail="nan"``, whose rewards are
-NaN from ``at_step`` on.
+failure happened, so the restarted worker behaves); or, with ``fail="nan"`` (``"nan_obs"``), whose
+rewards (observations) are NaN from ``at_step`` on.
 
 ``flaky_env:Tally-v0`` is a bookkeeping env for the replay collectors: its observation names the
 episode and the step within it, so a test can check that every transition was stored once, in
@@ -34,8 +34,9 @@ def importable_env(env: dict[str, str] | None = None) -> dict[str, str]:
 
 
 class FlakyEnv(gym.Wrapper):
-    def __init__(self, fail: str = "raise", at_step: int = 50, marker: str = "", render_mode: str | None = None):
-        super().__init__(gym.make("CartPole-v1", render_mode=render_mode))
+    def __init__(self, fail: str = "raise", at_step: int = 50, marker: str = "", render_mode: str | None = None,
+                 base: str = "CartPole-v1"):
+        super().__init__(gym.make(base, render_mode=render_mode))
         self.fail, self.at_step, self.marker = fail, at_step, Path(marker) if marker else None
         self._steps = 0
 
@@ -44,6 +45,9 @@ class FlakyEnv(gym.Wrapper):
         if self.fail == "nan" and self._steps >= self.at_step:
             obs, _, terminated, truncated, info = self.env.step(action)
             return obs, float("nan"), terminated, truncated, info
+        if self.fail == "nan_obs" and self._steps >= self.at_step:
+            obs, reward, terminated, truncated, info = self.env.step(action)
+            return np.full_like(obs, np.nan), reward, terminated, truncated, info
         if self._steps == self.at_step and self.marker is not None and not self.marker.exists():
             self.marker.write_text(self.fail)
             if self.fail == "raise":

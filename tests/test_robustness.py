@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from drivelab.training.outputs.checkpoint import checkpoint_step, list_checkpoints
+from drivelab.training.run.directory import MARKER
 from processes import run_drivelab
 
 TRAIN = ["-m", "drivelab", "train", "--algo", "ppo", "--env", "CartPole-v1", "--num-envs", "2", "--no-progress"]
@@ -52,7 +53,7 @@ def test_a_signal_stops_the_run_with_a_checkpoint_that_resumes(sig, env, extra, 
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    assert proc.returncode == 130
+    assert proc.returncode == (143 if sig == signal.SIGTERM else 130)   # 128 + the signal's number, as a shell says
     assert "--resume" in _one_line(stderr)
     step = int(list_checkpoints(run_dir)[-1].name.split("_")[-1])
     assert step > 0 and not list((run_dir / "checkpoints").glob(".tmp_*"))
@@ -168,6 +169,7 @@ def test_a_run_killed_before_its_first_checkpoint_starts_afresh(left_behind, tmp
 
     run_dir = tmp_path / "run"
     run_dir.mkdir()
+    (run_dir / MARKER).write_text("")   # drivelab made the directory before the kill
     (run_dir / "metrics.csv").write_text(left_behind)
     cfg = build_config({"algo": "ppo", "steps": 512, "seed": 0, "run_dir": str(run_dir),
                         "env": {"id": "CartPole-v1", "num_envs": 2}, "ppo": {"num_steps": 128}})
@@ -205,11 +207,26 @@ def test_damaged_files_are_skipped_or_refused_in_one_line(tmp_path, run_cli):
     assert not list((run_dir / "checkpoints").glob(".tmp_*"))
 
 
-def test_nan_rewards_stop_the_run_in_one_line(tmp_path, run_cli):
-    out = run_cli("train", "--algo", "ppo", "--env", "flaky_env:Flaky-v0", "--env.kwargs.fail", "nan",
-                  "--env.kwargs.at_step", "100", "--steps", "5000", "--ppo.num_steps", "256", "--run-dir", tmp_path / "n",
-                  "--no-progress")
-    assert out.returncode == 2 and "diverged" in _one_line(out.stderr)
+@pytest.mark.parametrize("algo, fail, extra", [
+    ("ppo", "nan", ["--ppo.num_steps", "256"]),
+    ("ppo", "nan_obs", ["--ppo.act_in_workers", "true", "--num-envs", "2", "--env.backend", "async"]),
+    ("reinforce", "nan", []), ("grpo", "nan_obs", []),
+    ("sac", "nan", ["--sac.learning_starts", "50", "--env.kwargs.base", "Pendulum-v1"]), ("td3", "nan_obs", ["--td3.act_in_workers", "true", "--num-envs", "2", "--env.backend", "async",
+                                  "--env.kwargs.base", "Pendulum-v1"]),
+])
+def test_non_finite_rewards_and_observations_stop_the_run_in_one_line_naming_them(algo, fail, extra, tmp_path, run_cli):
+    out = run_cli("train", "--algo", algo, "--env", "flaky_env:Flaky-v0", "--env.kwargs.fail", fail,
+                  "--env.kwargs.at_step", "100", "--steps", "5000", *extra, "--run-dir", tmp_path / "n", "--no-progress")
+    what = "reward" if fail == "nan" else "observation"
+    assert out.returncode == 2 and f"non-finite {what} (nan)" in _one_line(out.stderr), out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_too_many_minibatches_are_refused_before_training(tmp_path, run_cli):
+    out = run_cli("train", "--algo", "ppo", "--env", "CartPole-v1", "--ppo.num_minibatches", "100000",
+                  "--steps", "1000", "--run-dir", tmp_path / "m", "--no-progress")
+    assert out.returncode == 2 and "'ppo.num_minibatches' is 100000" in _one_line(out.stderr)
+    assert not (tmp_path / "m").exists()
 
 
 def test_an_env_module_that_cannot_be_imported_is_one_line_naming_it(tmp_path, capsys):
@@ -244,11 +261,11 @@ _text = st.text(alphabet="abcxyz-_!@ ", min_size=1, max_size=8)
 BAD_VALUES = {
     "--seed": st.one_of(st.integers(max_value=-1), st.integers(min_value=2**63, max_value=2**80), _text),
     "--steps": st.one_of(st.integers(max_value=-1), _text),
-    "--num-envs": st.one_of(st.integers(max_value=0), _text),
+    "--num-envs": st.one_of(st.integers(max_value=0), st.integers(min_value=10_000, max_value=10**6), _text),
     "--ppo.lr": st.one_of(st.floats(max_value=0.0, allow_nan=False), st.just("inf"), st.just(".nan"), _text),
     "--ppo.gamma": st.one_of(st.floats(min_value=1.001, max_value=1e9), st.floats(max_value=-0.001, min_value=-1e9)),
     "--ppo.hidden": st.one_of(st.lists(st.integers(max_value=0), min_size=1, max_size=3).map(str), st.just("[]")),
-    "--ppo.num_minibatches": st.integers(max_value=0),
+    "--ppo.num_minibatches": st.one_of(st.integers(max_value=0), st.integers(min_value=257)),
     "--ppo.clip_vloss": _text,
     "--env": _text.map(lambda t: f"No{t}Env-v9"),
     "--env.num_envs": st.integers(max_value=0),
@@ -268,7 +285,8 @@ BAD_VALUES = {
 UNKNOWN = st.builds(lambda section, name: f"--{section}.{name}", st.sampled_from(["ppo", "env", "eval", "track"]),
                     st.text(alphabet="qwzjk", min_size=3, max_size=8))
 CONFIG_FILES = st.sampled_from([b"\x00\xff\xfe binary", b"algo: [unclosed", b"- just\n- a list\n", b"ppo: 3\nalgo: ppo\n",
-                                b"algo: ppo\nenv: {id: CartPole-v1, nonsense: 1}\n"])
+                                b"algo: ppo\nenv: {id: CartPole-v1, nonsense: 1}\n",
+                                b"", b"# comments only\n", b"algo: ppo\nsteps: 5\nalgo: a2c\n"])  # empty; a key twice
 
 
 @settings(max_examples=120, deadline=None, derandomize=True,  # the same examples on every run
@@ -276,20 +294,23 @@ CONFIG_FILES = st.sampled_from([b"\x00\xff\xfe binary", b"algo: [unclosed", b"- 
 @given(case=st.one_of(st.sampled_from(sorted(BAD_VALUES)).flatmap(lambda flag: st.tuples(st.just(flag), BAD_VALUES[flag])),
                       st.tuples(UNKNOWN, st.just("1")),
                       st.tuples(st.just("--config"), CONFIG_FILES),
-                      st.tuples(st.just("--run-dir"), st.just("a-file"))))
+                      st.tuples(st.just("--run-dir"), st.sampled_from(["a-file", "a-user-folder", ""]))))
 def test_generated_bad_input_is_one_line_and_writes_nothing(case, tmp_path_factory, capsys):
     from drivelab.cli import main
 
     tmp = tmp_path_factory.mktemp("fuzz")
     flag, value = case
     run_dir = tmp / "run"
-    args = ["train", "--algo", "ppo", "--env", "CartPole-v1", "--steps", "1", "--no-progress", "--run-dir", str(run_dir)]
+    # 512 steps: one PPO iteration of the defaults, so no case is refused for its run length alone
+    args = ["train", "--algo", "ppo", "--env", "CartPole-v1", "--steps", "512", "--no-progress", "--run-dir", str(run_dir)]
     if flag == "--config":
         (tmp / "bad.yaml").write_bytes(value)
         args += ["--config", str(tmp / "bad.yaml")]
     elif flag == "--run-dir":
         (tmp / "a-file").write_text("not a directory")
-        args[-1] = str(tmp / "a-file")
+        (tmp / "a-user-folder").mkdir()
+        (tmp / "a-user-folder" / "config.yaml").write_text("mine: 1\n")
+        args[-1] = str(tmp / value) if value else ""
     else:
         args += [flag, str(value)]
     with pytest.raises(SystemExit) as exit_info:
@@ -299,6 +320,8 @@ def test_generated_bad_input_is_one_line_and_writes_nothing(case, tmp_path_facto
     lines = [line for line in captured.err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("drivelab: error:") and "Traceback" not in captured.err, (args, captured.err)
     assert not run_dir.exists(), (args, "the run directory was created")
+    if flag == "--run-dir":
+        assert [p.name for p in (tmp / "a-user-folder").iterdir()] == ["config.yaml"], (args, "the user's folder changed")
 
 
 @pytest.mark.parametrize("fail, in_workers", [("raise", False), ("die", False), ("hang", False),

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 from gymnasium.vector import AutoresetMode
+from processes import run_drivelab
 
 from drivelab.algos import ALGORITHMS
 from drivelab.api import build_config
@@ -21,7 +22,7 @@ from drivelab.training.outputs.checkpoint import load_checkpoint
 from drivelab.training.outputs.episodes import EpisodeTracker
 from drivelab.training.outputs.tracking import Tracker
 from drivelab.training.run.checkpoints import RunCheckpoints
-from drivelab.training.run.directory import open_run_dir, seed_everything
+from drivelab.training.run.directory import MARKER, open_run_dir, seed_everything
 from drivelab.training.run.metrics import RunMetrics, check_finite
 from drivelab.training.run.periodic_evaluation import RunEvaluation, eval_env_config
 from drivelab.training.run.timing import Timing
@@ -44,8 +45,9 @@ def _policy(cfg) -> torch.nn.Module:
 
 def test_the_run_directory_is_locked_cleaned_and_holds_the_config(tmp_path):
     cfg = _config(tmp_path)
-    stale = tmp_path / "run" / "checkpoints" / ".tmp_123"
+    stale = tmp_path / "run" / "checkpoints" / ".tmp_123"   # left by a killed run
     stale.mkdir(parents=True)
+    (tmp_path / "run" / MARKER).write_text("")
     lock = open_run_dir(cfg)
     try:
         assert (tmp_path / "run" / "config.yaml").is_file() and not stale.exists()
@@ -54,6 +56,43 @@ def test_the_run_directory_is_locked_cleaned_and_holds_the_config(tmp_path):
     finally:
         lock.close()
     open_run_dir(cfg).close()  # released with its file
+
+
+def test_a_folder_that_is_not_a_run_is_refused_and_left_as_it_was(tmp_path):
+    cfg = _config(tmp_path)
+    mine = tmp_path / "run"
+    mine.mkdir()
+    (mine / "config.yaml").write_text("my: own\n")
+    (mine / "metrics.csv").write_text("a,b\n")
+    with pytest.raises(DrivelabError, match=r"not a drivelab run \(it holds config.yaml, metrics.csv\)"):
+        open_run_dir(cfg)
+    assert (mine / "config.yaml").read_text() == "my: own\n" and sorted(p.name for p in mine.iterdir()) == \
+        ["config.yaml", "metrics.csv"]
+
+
+def test_an_empty_folder_or_a_run_written_before_markers_is_a_run_dir(tmp_path):
+    empty = tmp_path / "run"
+    empty.mkdir()
+    open_run_dir(_config(tmp_path)).close()
+    assert (empty / MARKER).is_file()
+    old = tmp_path / "old"
+    (old / "checkpoints" / "step_000000000000").mkdir(parents=True)
+    (old / "config.yaml").write_text("algo: ppo\n")
+    open_run_dir(_config(tmp_path, run_dir=str(old))).close()
+    assert (old / MARKER).is_file()
+
+
+def test_the_cli_refuses_a_users_folder_an_empty_name_and_a_path_through_a_file(tmp_path):
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "config.yaml").write_text("my: own\n")
+    (tmp_path / "afile").write_text("")
+    for run_dir, message in [(str(mine), "is not a drivelab run"), ("", "'run_dir' is empty"),
+                             (str(tmp_path / "afile" / "x"), "is a file")]:
+        result = run_drivelab("train", "--algo", "ppo", "--env", "CartPole-v1", "--steps", "512", "--run-dir", run_dir,
+                              cwd=tmp_path)
+        assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr, result.stderr
+    assert (mine / "config.yaml").read_text() == "my: own\n"
 
 
 def test_seeding_gives_the_same_streams(tmp_path):

@@ -15,12 +15,11 @@ nothing below the algorithms imports it.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import importlib
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
-
-from drivelab.algos import a2c, ddpg, grpo, ppo, reinforce, sac, td3
 
 
 @dataclass(frozen=True)
@@ -36,8 +35,31 @@ def _spec(name: str, module: ModuleType) -> AlgoSpec:
     return AlgoSpec(name, module.Params, module.build_policy, module.train, (module.__doc__ or "").strip().splitlines()[0])
 
 
-ALGORITHMS: dict[str, AlgoSpec] = {
-    name: _spec(name, module)
-    for name, module in (("reinforce", reinforce), ("a2c", a2c), ("ppo", ppo), ("grpo", grpo),
-                         ("ddpg", ddpg), ("td3", td3), ("sac", sac))
-}
+class Registry(Mapping[str, AlgoSpec]):
+    """name -> :class:`AlgoSpec`, a read-only dict that imports ``drivelab/algos/<name>.py`` the
+    first time that entry is read. Its names (iterating, ``in``, ``len``) need no import, so
+    ``drivelab --help`` and ``drivelab train --help`` list the algorithms without loading torch."""
+
+    def __init__(self, names: tuple[str, ...]):
+        self._names = names
+        self._specs: dict[str, AlgoSpec] = {}
+
+    def __getitem__(self, name: str) -> AlgoSpec:
+        if name not in self._names:
+            raise KeyError(name)
+        if name not in self._specs:  # first use: import the algorithm's module (and torch with it)
+            self._specs[name] = _spec(name, importlib.import_module(f"drivelab.algos.{name}"))
+        return self._specs[name]
+
+    def __contains__(self, name: object) -> bool:  # Mapping's default would import the module
+        return name in self._names
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+
+# The algorithms, in the order that help texts and tables list them.
+ALGORITHMS: Registry = Registry(("reinforce", "a2c", "ppo", "grpo", "ddpg", "td3", "sac"))

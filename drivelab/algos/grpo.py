@@ -43,6 +43,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from drivelab.config import EnvConfig, TrainConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
+from drivelab.training.collection.checks import check_finite_step
 from drivelab.training.learning.hyperparams import PolicyNetParams
 from drivelab.training.learning.losses import approx_kl, clipped_surrogate_loss
 from drivelab.training.learning.optim import gradient_step, linear_decay, set_learning_rate
@@ -184,6 +185,7 @@ def collect_group_rounds(envs: VectorEnv, agent: ActorCritic, storage: EpisodeSt
         action = dist.sample()
         with run.timing.env:
             next_obs, reward, terminated, truncated, info = envs.step(agent.to_env(action))
+        check_finite_step(next_obs, reward, run.step + recorded_steps)
         done = terminated | truncated
         store_step(storage, t, obs, action, dist, reward, done, book)
         recorded_steps += int(book.recording.sum())

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import gymnasium as gym
 import torch
 
-from drivelab.config import TrainConfig
+from drivelab.config import EnvConfig, TrainConfig
 from drivelab.errors import DrivelabError
 from drivelab.training.collection.rollout import RolloutCollector
 from drivelab.training.learning.hyperparams import ActorCriticParams
@@ -48,6 +48,14 @@ class Params(ActorCriticParams):
         super().validate()
         if self.update_epochs < 1 or self.num_minibatches < 1:
             raise DrivelabError("config fields 'ppo.update_epochs' and 'ppo.num_minibatches' must be >= 1")
+
+    def validate_env(self, env: EnvConfig) -> None:
+        # A minibatch needs 2 samples at least: the advantages are normalised by their std.
+        samples = self.num_steps * env.num_envs
+        if self.num_minibatches > samples // 2:
+            raise DrivelabError(f"config field 'ppo.num_minibatches' is {self.num_minibatches}, but a rollout holds "
+                                f"ppo.num_steps x env.num_envs = {samples} samples: use at most {max(1, samples // 2)} "
+                                "(2 samples per minibatch)")
 
 
 def build_policy(cfg: TrainConfig, obs_space: gym.Space, act_space: gym.Space) -> ActorCritic:

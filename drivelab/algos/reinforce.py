@@ -31,6 +31,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from drivelab.config import TrainConfig
 from drivelab.envs import make_vector_env
 from drivelab.errors import DrivelabError
+from drivelab.training.collection.checks import check_finite_step
 from drivelab.training.learning.hyperparams import PolicyNetParams
 from drivelab.training.learning.losses import policy_gradient_loss
 from drivelab.training.learning.optim import gradient_step
@@ -103,6 +104,7 @@ def collect_episodes(envs: VectorEnv, policy: Policy, storage: EpisodeStorage, m
         action = policy.act(torch.as_tensor(obs, device=run.device))
         with run.timing.env:
             next_obs, reward, terminated, truncated, info = envs.step(policy.to_env(action))
+        check_finite_step(next_obs, reward, run.step + recorded_steps)
         done = terminated | truncated
         storage.obs[t] = obs
         storage.actions[t] = action.cpu().numpy()

@@ -15,6 +15,7 @@ import multiprocessing
 import os
 import signal
 import sys
+import warnings
 from collections.abc import Callable
 
 import gymnasium as gym
@@ -78,13 +79,7 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
     if render_mode is not None:  # pygame-drawn frames (CartPole, MetaDrive's top-down) need no display
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
-    try:
-        env = gym.make(env_id, render_mode=render_mode, **kwargs)
-    except DrivelabError:
-        raise
-    except (TypeError, ValueError, KeyError, AssertionError, gym.error.Error) as exc:
-        message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise DrivelabError(f"env '{cfg.id}' could not be created with kwargs {kwargs}: {message}") from None
+    env = _make_base_env(cfg.id, env_id, kwargs, render_mode)
     if cfg.scenario_replay:
         env = ScenarioReplay(env, cfg.scenario_replay)
     if cfg.reward:
@@ -105,6 +100,30 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
     if cfg.obs_filters:
         env = apply_filters(env, list(cfg.obs_filters))
     return wrapper(env) if wrapper is not None else env
+
+
+def _make_base_env(name: str, env_id: str, kwargs: dict, render_mode: str | None) -> gym.Env:
+    """``gym.make`` with ``render_mode`` only when one is asked for (videos): an env class whose
+    ``__init__`` takes no ``render_mode`` works as with ``gym.make(id)``; one that cannot render
+    in that mode is one line."""
+    mode = {"render_mode": render_mode} if render_mode is not None else {}
+    try:
+        with warnings.catch_warnings():  # a mode missing from the env's metadata: said below, in one line
+            warnings.filterwarnings("ignore", message=".*render_mode.*")
+            env = gym.make(env_id, **mode, **kwargs)
+    except DrivelabError:
+        raise
+    except (TypeError, ValueError, KeyError, AssertionError, gym.error.Error) as exc:
+        message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if render_mode is not None and "render_mode" in message:
+            raise DrivelabError(f"env '{name}' cannot render (a video needs render_mode='{render_mode}'): "
+                                f"{message}") from None
+        raise DrivelabError(f"env '{name}' could not be created with kwargs {kwargs}: {message}") from None
+    if render_mode is not None and getattr(env.unwrapped, "render_mode", None) != render_mode:
+        env.close()
+        raise DrivelabError(f"env '{name}' cannot render: it ignored render_mode='{render_mode}' "
+                            f"(its metadata lists {env.metadata.get('render_modes', [])}); videos need it")
+    return env
 
 
 def _find_wrapper(env: gym.Env, kind: type[gym.Wrapper]) -> gym.Wrapper | None:

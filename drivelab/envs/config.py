@@ -24,8 +24,8 @@ POLICY_KWARGS = ("vehicle_config",)
 
 @dataclass
 class EnvConfig:
-    id: str = "CartPole-v1"
-    num_envs: int = 4
+    id: str = "CartPole-v1"           # a Gymnasium id, a drivelab id, or module:EnvClass
+    num_envs: int = 4                 # envs stepped in parallel
     # Where the envs run: sync (in this process), async (one subprocess each), ray (in Ray actors,
     # on this machine or a cluster: drivelab.envs.ray_backend), or auto: async for simulators that
     # allow one instance per process (MetaDrive), sync otherwise. (A saved config's
@@ -37,7 +37,7 @@ class EnvConfig:
     actor_cpus: float = 1.0
     # "NxM": N steering x M throttle discrete actions over a [steering, throttle] Box action.
     action_grid: str | None = None
-    max_steering: float = 0.6
+    max_steering: float = 0.6         # the action grid's steering range: [-max, max]
     # Steering-only 1-D actions at this constant throttle (drivelab.envs.wrappers.FixedThrottle).
     fixed_throttle: float | None = None
     # Hold each action for this many env steps, summing their rewards (wrappers.ActionRepeat):

@@ -14,13 +14,14 @@ from __future__ import annotations
 
 from typing import Any
 
-import cv2
 import gymnasium as gym
 import numpy as np
 from gymnasium.wrappers import FrameStackObservation, GrayscaleObservation, ResizeObservation, TransformObservation
-from scipy import ndimage
 
 from drivelab.errors import DrivelabError
+
+# SciPy and OpenCV are imported by the filters that use them, not here: every `import drivelab`
+# imports this module (a fifth of a second saved on `drivelab --help`).
 
 
 def to_float(image: np.ndarray) -> np.ndarray:
@@ -37,6 +38,8 @@ def crop(image: np.ndarray, top: int = 0, bottom: int = 0, left: int = 0, right:
 def sobel(image: np.ndarray) -> np.ndarray:
     """Gradient magnitude sqrt(Gx^2 + Gy^2) of each channel with 3x3 Sobel kernels, float32,
     scaled to [0, 1] by its maximum possible value (4 * sqrt(2) * the input range)."""
+    from scipy import ndimage
+
     peak = 255.0 if image.dtype == np.uint8 else 1.0
     out = np.empty(image.shape, np.float32)
     for c in range(image.shape[-1]):  # per channel: a 3-D sobel would also smooth across channels
@@ -53,6 +56,8 @@ def resize(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     OpenCV resizes at most 4 channels at once; MetaDrive's top-down image has 5 (and a frame
     stack more), so the channels go through in groups of up to 4.
     """
+    import cv2
+
     height, width = shape
     groups = [cv2.resize(image[..., c:c + 4], (width, height), interpolation=cv2.INTER_AREA)
               for c in range(0, image.shape[-1], 4)]

@@ -13,6 +13,7 @@ last observation as their final one. More than ``max_restarts`` restarts within
 from __future__ import annotations
 
 import multiprocessing
+import queue
 import sys
 import warnings
 from collections import deque
@@ -86,7 +87,13 @@ class RestartingVectorEnv(VectorEnv):
     def _restart_after(self, exc: BaseException, restarting: str, replace: Callable[[], None]) -> None:
         """Spend the restart budget on ``exc`` (over it: stop every worker and raise), then
         ``replace()`` the failed workers and tell ``on_restart``. ``restarting`` as in
-        :meth:`RestartBudget.spend`."""
+        :meth:`RestartBudget.spend`. A :class:`DrivelabError` from a worker (what the env handed
+        it is unusable, e.g. a non-finite observation) is not a crash that a restart cures: the
+        workers stop and its one line ends the run."""
+        cause = getattr(exc, "cause", None)   # Ray wraps an actor's exception
+        if isinstance(exc, DrivelabError) or isinstance(cause, DrivelabError):
+            self._stop_workers()
+            raise DrivelabError(error_line(exc).removeprefix("DrivelabError: ")) from None
         self.budget.spend(self._steps, exc, restarting, stop=self._stop_workers)
         self.restarts += 1
         replace()
@@ -113,20 +120,31 @@ class WorkerCallQueue:
         self.call_queue(name, *args, steps=steps)
         return self.call_next(timeout)
 
-    def call_queue(self, name: str, *args, steps: int = 1) -> None:
+    def call_queue(self, name: str, *args, steps: int = 1, each: list[tuple] | None = None) -> None:
         """Queue ``call(name, *args)`` in every worker without waiting for the calls queued
         before it: a worker takes its calls in order, so it starts the next one as soon as it has
         answered one (the off-policy workers play chunk after chunk while the learner updates).
         :meth:`call_next` returns the results, oldest call first. ``steps`` as in
-        :meth:`call_or_restart`."""
+        :meth:`call_or_restart`; ``each`` (one tuple per worker) adds each worker's own arguments
+        after ``args`` (the evaluation episodes a worker plays)."""
         self._steps += steps
         self._mid_exchange = True
         try:
-            for pipe in self.envs.parent_pipes:
-                pipe.send(("_call", (name, args, {})))
+            for index, pipe in enumerate(self.envs.parent_pipes):
+                own = each[index] if each is not None else ()
+                pipe.send(("_call", (name, (*args, *own), {})))
             self._queued_calls += 1
         except Exception as exc:  # noqa: BLE001 - a dead worker
-            self._pending_error = exc
+            self._pending_error = self._reported_error() or exc
+
+    def _reported_error(self) -> BaseException | None:
+        """The exception a worker reported (gymnasium's error queue) before it ended and its pipe
+        broke, so that the run names the worker's own error rather than the broken pipe."""
+        try:
+            _, exctype, value, _ = self.envs.error_queue.get(timeout=1.0)
+        except queue.Empty:
+            return None
+        return value if isinstance(value, BaseException) else exctype(value)
 
     def call_next(self, timeout: float | None = None) -> tuple | None:
         """The results of the oldest queued call, or None when a worker raised, died or took

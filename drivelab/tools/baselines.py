@@ -50,13 +50,15 @@ from __future__ import annotations
 import copy
 import difflib
 import functools
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import gymnasium as gym
 import numpy as np
-import torch
 
 from drivelab.errors import DrivelabError
+
+if TYPE_CHECKING:  # torch is imported where a policy acts, so that the CLI's --help needs none
+    import torch
 
 BASELINES = ("random", "lane-keeping", "metadrive-expert")
 
@@ -189,6 +191,10 @@ class RandomPolicy:
     of actions is fixed by ``seed``).
     """
 
+    # One generator for every env: the actions depend on the order the envs ask for them, which only
+    # the evaluation loop in this process fixes (drivelab.training.collection.evaluation.plays_in_workers).
+    shared_generator = True
+
     def __init__(self, action_space: gym.Space, seed: int = 0):
         self.space = copy.deepcopy(action_space)  # seeding the caller's space would change its samples
         self.space.seed(seed)
@@ -196,6 +202,8 @@ class RandomPolicy:
 
     def act(self, obs: torch.Tensor, deterministic: bool = True) -> torch.Tensor:
         """(B, ...) observations -> (B, *action_shape) actions, one independent sample per row."""
+        import torch
+
         samples = np.stack([np.asarray(self.space.sample()) for _ in range(obs.shape[0])])
         return torch.as_tensor(samples)
 

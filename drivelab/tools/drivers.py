@@ -7,19 +7,23 @@ weights and observation statistics; ``state.json``: the run's config and step) a
 drivelab commit, MetaDrive version, the command that reproduces it), its evaluation on
 MetaDrive's protocol (the 200 unseen scenarios, start seeds 0-199: success, crash, out of road,
 route completion with 95% confidence intervals, per episode too) beside MetaDrive's expert on
-the same scenarios, and the sha256 of each file.
+the same scenarios, and the sha256 of each file. ``SHA256SUMS`` (the format of ``sha256sum``, so
+``sha256sum -c SHA256SUMS`` checks it too) holds the sha256 of every file, the card included: an
+edited card (a forged success rate) is refused like a changed weight file.
 
 Everything that takes a run or a checkpoint takes a shipped driver's name (``drivelab eval
 drivelab-driver``, ``drivelab.load("drivelab-driver")``, ``drivelab export drivelab-driver``):
 :func:`resolve_policy_path` turns the name into the directory, and any directory with a card is
 checked against it first: a file whose hash differs is refused, as is an env whose observation
-layout differs from the one the driver was trained on.
+layout differs from the one the driver was trained on. A shipped driver without its card, or a
+card without ``SHA256SUMS``, is refused rather than loaded unchecked.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import re
 from pathlib import Path
 
 import gymnasium as gym
@@ -29,20 +33,63 @@ from drivelab.errors import DrivelabError
 
 DRIVERS_DIR = Path(__file__).resolve().parent.parent / "drivers"
 CARD = "card.json"
+SUMS = "SHA256SUMS"
+# The files a driver consists of, each listed in SHA256SUMS: what loads (weights, config) and what vouches (card).
+DRIVER_FILES = ("tensors.safetensors", "state.json", CARD)
 # The metrics a card reports, in its order: MetaDrive's episode outcomes and how far the car got.
 CARD_METRICS = ("success_rate", "crash_rate", "out_of_road_rate", "route_completion")
 
 
 def shipped_drivers() -> list[str]:
-    """Names of the drivers inside the package."""
-    return sorted(p.parent.name for p in DRIVERS_DIR.glob(f"*/{CARD}"))
+    """Names of the drivers inside the package (every directory, with its card or without:
+    one that lost its card is refused when it is used, not mistaken for a missing name)."""
+    found = DRIVERS_DIR.iterdir() if DRIVERS_DIR.is_dir() else []
+    return sorted(p.name for p in found if p.is_dir() and not p.name.startswith((".", "_")))
 
 
 def file_sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def read_sums(directory: Path) -> dict[str, str]:
+    """``SHA256SUMS``: file name -> sha256, from lines ``<sha256>  <name>`` as ``sha256sum`` writes them."""
+    if not (directory / SUMS).is_file():
+        raise DrivelabError(f"driver {directory}: no {SUMS} (the sha256 of its files and model card), so it cannot "
+                            "be checked; reinstall drivelab or download the driver again")
+    try:
+        lines = (directory / SUMS).read_text().splitlines()
+    except (OSError, ValueError) as exc:
+        raise DrivelabError(f"driver {directory}: {SUMS} cannot be read ({type(exc).__name__})") from None
+    sums = {}
+    for line in lines:
+        match = re.fullmatch(r"([0-9a-f]{64}) [ *](.+)", line)  # "*": sha256sum's binary mode
+        if match is None:
+            raise DrivelabError(f"driver {directory}: {SUMS} has a line that is not '<sha256>  <file>': {line[:80]!r}")
+        sums[match[2]] = match[1]
+    return sums
+
+
+def check_file(directory: Path, name: str, sums: dict[str, str]) -> None:
+    """One file of a driver is listed in ``SHA256SUMS``, exists and has that sha256."""
+    if name not in sums:
+        raise DrivelabError(f"driver {directory}: file {name} is not listed in its {SUMS}")
+    if not (directory / name).is_file():
+        raise DrivelabError(f"driver {directory}: file {name} named by its {SUMS} is missing")
+    if file_sha256(directory / name) != sums[name]:
+        raise DrivelabError(f"driver {directory}: file {name} does not match the sha256 in its {SUMS} "
+                            "(changed or corrupted; reinstall drivelab or download the driver again)")
+
+
+def write_sums(directory: Path) -> Path:
+    """Write ``SHA256SUMS`` for the files of the driver in ``directory`` (after its card)."""
+    lines = [f"{file_sha256(directory / name)}  {name}\n" for name in DRIVER_FILES]
+    (directory / SUMS).write_text("".join(lines))
+    return directory / SUMS
+
+
 def read_card(directory: Path) -> dict:
+    """The model card of a driver, checked against ``SHA256SUMS`` before anything in it is read."""
+    check_file(directory, CARD, read_sums(directory))
     try:
         card = json.loads((directory / CARD).read_text())
     except (OSError, ValueError) as exc:
@@ -64,12 +111,21 @@ def verify_files(directory: Path, card: dict) -> None:
 
 
 def resolve_policy_path(path: str | Path) -> Path:
-    """A shipped driver's name -> its directory; any other path unchanged. A directory with a
-    model card is verified against it (file hashes) before anything loads it."""
+    """A shipped driver's name -> its directory; any other path unchanged. A driver directory
+    (one with a model card or ``SHA256SUMS``) is verified before anything loads it: every file
+    against ``SHA256SUMS``, card included, then the weights against the card. A shipped driver
+    must have both: without them nothing would vouch for its files."""
     candidate = Path(path)
     if not candidate.exists() and str(path) in shipped_drivers():
         candidate = DRIVERS_DIR / str(path)
-    if (candidate / CARD).is_file():
+    shipped = candidate.is_dir() and candidate.resolve().parent == DRIVERS_DIR
+    if shipped and not (candidate / CARD).is_file():
+        raise DrivelabError(f"shipped driver {candidate.name} has no model card ({candidate / CARD}): its files cannot "
+                            "be checked; reinstall drivelab")
+    if (candidate / CARD).is_file() or (candidate / SUMS).is_file():
+        sums = read_sums(candidate)
+        for name in DRIVER_FILES:
+            check_file(candidate, name, sums)
         verify_files(candidate, read_card(candidate))
     return candidate
 
@@ -100,7 +156,7 @@ def format_card(card: dict) -> str:
     if evaluation:
         lines.append(f"  evaluation  {evaluation.get('protocol')}")
         header = "    {:<18}" + "{:>22}" * len(CARD_METRICS)
-        lines.append(header.format("policy", *CARD_METRICS))
+        lines.append(header.format("policy", *CARD_METRICS) + "    (mean ± 95% CI of the mean)")
         for who, result in evaluation.get("policies", {}).items():
             cells = [f"{result[m]['mean']:.3f} ± {result[m]['ci95']:.3f}" for m in CARD_METRICS if m in result]
             lines.append(header.format(who, *cells))
@@ -136,4 +192,5 @@ def write_driver(out: Path, policy_dir: Path, card: dict) -> Path:
         (out / name).write_bytes((policy_dir / name).read_bytes())
         files[name] = file_sha256(out / name)
     (out / CARD).write_text(json.dumps({**card, "files": files}, indent=1) + "\n")
+    write_sums(out)  # last: the card's own hash too
     return out

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from drivelab.config import EnvConfig, TrainConfig, config_to_dict
+from drivelab.config import EnvConfig, TrainConfig, check_output_path, config_to_dict
 from drivelab.envs.wrappers import grid_table, parse_grid
 from drivelab.errors import DrivelabError
 
@@ -94,6 +94,7 @@ def export_policy(deployed: DeployedPolicy, meta: dict[str, Any], obs_space: gym
     """Write ``policy.onnx`` or ``policy.pt`` (TorchScript) and ``policy.json`` into ``out``."""
     if fmt not in FORMATS:
         raise DrivelabError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    check_output_path(out, "export --out", directory=True)  # one line, not a traceback from mkdir or torch
     out.mkdir(parents=True, exist_ok=True)
     deployed = deployed.eval()
     example = torch.as_tensor(np.stack([obs_space.sample() for _ in range(2)]))

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from tqdm.auto import tqdm
 
 from drivelab.tools.baselines import BASELINES
 from drivelab.tools.policies import baseline_env, evaluate_baseline, evaluate_checkpoint
@@ -60,26 +61,60 @@ def _table(rows: list[tuple[str, dict[str, float]]]) -> str:
     return f"<table><tr><th>policy</th>{head}</tr>{body}</table>"
 
 
-def evaluate_for_report(run: Path, episodes: int, baselines: bool, video: bool) -> dict[str, Any]:
+class ReportProgress:
+    """The report's progress bar (stderr): one job per policy evaluated and per video filmed,
+    the current one named, as each takes seconds to minutes. A run adds its jobs when it knows
+    them (its baselines follow its env); ``progress=False`` shows nothing."""
+
+    def __init__(self, progress: bool = True):
+        self.bar = tqdm(total=0, desc="report", unit="job", dynamic_ncols=True, disable=not progress)
+
+    def expect(self, jobs: int) -> None:
+        self.bar.total += jobs
+        self.bar.refresh()
+
+    def start(self, what: str) -> None:
+        self.bar.set_postfix_str(what)  # shown now: the job about to take the time
+
+    def finish(self) -> None:
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def evaluate_for_report(run: Path, episodes: int, baselines: bool, video: bool,
+                        progress: ReportProgress | None = None) -> dict[str, Any]:
     """Evaluate the run's latest and best checkpoints and the baselines on the same episodes; film
-    the best policy if the run has no video yet."""
+    the best policy if the run has no video yet. ``progress`` counts each evaluation and the video."""
+    if progress is None:
+        progress = ReportProgress(progress=False)
     rows, env_cfg = [], None
     targets = [("latest", run)] + ([("best", run / "checkpoints" / "best")] if (run / "checkpoints" / "best").is_dir() else [])
+    videos = sorted((run / "videos").glob("*.mp4")) if (run / "videos").is_dir() else []
+    film = video and not videos
+    progress.expect(len(targets) + int(film))
     for label, path in targets:
+        progress.start(f"{run.name}: {label} checkpoint")
         result, env_cfg, ckpt = evaluate_checkpoint(path, episodes)
         rows.append((f"{label} checkpoint (step {checkpoint_step(ckpt)})", result.summary()))
+        progress.finish()
     if baselines and env_cfg is not None:
         base = baseline_env(env_cfg, num_envs=env_cfg.num_envs)
         names = BASELINES if env_cfg.id.startswith(("MetaDrive", "SafeMetaDrive")) else ("random",)
+        # lane-keeping is a crude controller: the expert and random bracket the range
+        names = [name for name in names if name != "lane-keeping"]
+        progress.expect(len(names))
         for name in names:
-            if name == "lane-keeping":
-                continue  # a crude controller; the expert and random bracket the range
+            progress.start(f"{run.name}: {name} baseline")
             rows.append((f"{name} baseline", evaluate_baseline(name, base, episodes).summary()))
-    videos = sorted((run / "videos").glob("*.mp4")) if (run / "videos").is_dir() else []
-    if not videos and video:
+            progress.finish()
+    if film:
+        progress.start(f"{run.name}: video")
         recorder = Recorder(run / "videos" / "report.mp4", max_episodes=1)
         evaluate_checkpoint(targets[-1][1], 1, recorder=recorder)
         videos = recorder.paths
+        progress.finish()
     return {"rows": rows, "video": videos[-1] if videos else None}
 
 
@@ -124,18 +159,23 @@ def _run_section(run: Path, evaluation: dict[str, Any], curves: Path) -> str:
 
 
 def write_report(runs: list[str | Path], out: str | Path | None = None, episodes: int = 10, baselines: bool = True,
-                 video: bool = True) -> Path:
-    """Write the report of ``runs`` (default file: ``RUN/report.html`` for one run)."""
+                 video: bool = True, progress: bool = True) -> Path:
+    """Write the report of ``runs`` (default file: ``RUN/report.html`` for one run); ``progress``:
+    a progress bar on stderr (:class:`ReportProgress`)."""
     runs = [Path(r) for r in runs]
     for run in runs:
         resolve_checkpoint(run)  # a one-line error for anything that is not a run with a checkpoint
     out = Path(out) if out else runs[0] / "report.html" if len(runs) == 1 else Path("report.html")
+    bar = ReportProgress(progress)
     with tempfile.TemporaryDirectory() as tmp:
         sections, summary_rows = [], []
-        for i, run in enumerate(runs):
-            evaluation = evaluate_for_report(run, episodes, baselines, video)
-            sections.append(_run_section(run, evaluation, plot_runs([run], Path(tmp) / f"curves_{i}.png")))
-            summary_rows.append((f"{run.name}: {evaluation['rows'][0][0]}", evaluation["rows"][0][1]))
+        try:
+            for i, run in enumerate(runs):
+                evaluation = evaluate_for_report(run, episodes, baselines, video, bar)
+                sections.append(_run_section(run, evaluation, plot_runs([run], Path(tmp) / f"curves_{i}.png")))
+                summary_rows.append((f"{run.name}: {evaluation['rows'][0][0]}", evaluation["rows"][0][1]))
+        finally:
+            bar.close()
         comparison = ""
         if len(runs) > 1:
             together = plot_runs(runs, Path(tmp) / "together.png")

@@ -158,7 +158,7 @@ def format_comparison(table: dict[str, dict[str, float]]) -> str:
     rows = [[name, f"{row['return_mean']:.2f} ± {row['return_std']:.2f}", f"{row['steps_counted']:.0f}",
              f"{row['corr_with_route_completion']:.2f}",
              ", ".join(f"{k[5:]}={v:.1f}" for k, v in row.items() if k.startswith("term/"))] for name, row in table.items()]
-    return format_table(["reward config", "episode reward", "steps", "corr(route)", "terms"], rows, align="lrrrl")
+    return format_table(["reward config", "episode reward (mean ± std)", "steps", "corr(route)", "terms"], rows, align="lrrrl")
 
 
 def plot_comparison(trajectories: list[list[dict]], configs: dict[str, dict[str, dict]], out: str | Path) -> Path:

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from tqdm.auto import tqdm
 
 from drivelab.config import TrainConfig, merge_overrides, parse_value, read_yaml, resolve_config_file
 from drivelab.errors import DrivelabError
@@ -106,6 +107,41 @@ def load_sweep(config: str | Path, grid: Sequence[str] = (), seeds: str | None =
     if env is not None:
         merge_overrides(base, {"env.id": env})
     return base, values, parse_seeds(seeds if seeds is not None else section.get("seeds", [0]))
+
+
+class TrialProgress:
+    """Trials done out of the total, on a progress bar (stderr): Ray Tune trains the trials in
+    other processes and says nothing until all are done. A trial that finishes, that ASHA stops
+    or that fails (after its retry) moves it by one; ``progress=False`` shows nothing."""
+
+    def __init__(self, total: int, progress: bool = True):
+        # shown after a second: an error raised before the trials start stays one line
+        self.bar = tqdm(total=total, desc="sweep", unit="trial", dynamic_ncols=True, disable=not progress, delay=1)
+        self.failed = 0
+
+    def trial_ended(self, failed: bool = False) -> None:
+        if failed:
+            self.failed += 1
+            self.bar.set_postfix_str(f"{self.failed} failed", refresh=False)
+        self.bar.update(1)
+
+    def tune_callback(self) -> Any:
+        """The Ray Tune callback that tells :meth:`trial_ended` (Tune calls it in this process)."""
+        from ray.tune import Callback
+
+        progress = self
+
+        class TrialEnded(Callback):
+            def on_trial_complete(self, iteration: int, trials: list, trial: Any, **info: Any) -> None:
+                progress.trial_ended()
+
+            def on_trial_error(self, iteration: int, trials: list, trial: Any, **info: Any) -> None:
+                progress.trial_ended(failed=True)
+
+        return TrialEnded()
+
+    def close(self) -> None:
+        self.bar.close()
 
 
 # ---- search: Optuna's sampler and ASHA's early stopping on Ray Tune -------------------------
@@ -192,10 +228,11 @@ def _search_trial(setting: dict[str, Any], base: dict, out: Path, seed: int, tra
 
 
 def run_search(base: dict, search: Search, seed: int, out: Path, train: Callable[..., Any],
-               ray_address: str | None = None, cpus_per_trial: float = 1.0, max_concurrent: int | None = None) -> dict:
+               ray_address: str | None = None, cpus_per_trial: float = 1.0, max_concurrent: int | None = None,
+               progress: bool = True) -> dict:
     """Sample ``search.trials`` runs with Optuna on Ray Tune (ASHA stopping the laggards when
     ``search.asha``), then rank them by ``search.metric``; writes sweep.json, sweep.md and
-    curves.png into ``out`` and returns the summary."""
+    curves.png into ``out`` and returns the summary. ``progress``: trials done on stderr."""
     from drivelab.envs.ray_backend import connect, import_ray
 
     search.validate()
@@ -207,8 +244,13 @@ def run_search(base: dict, search: Search, seed: int, out: Path, train: Callable
     _quiet_tune()
     import_ray()
     connect(ray_address)
-    tuner = _search_tuner(base, search, seed, out, train, probe, cpus_per_trial, max_concurrent)
-    trials = _search_trials(tuner.fit(), out, search.metric, probe.steps)
+    bar = TrialProgress(search.trials, progress)
+    try:
+        tuner = _search_tuner(base, search, seed, out, train, probe, cpus_per_trial, max_concurrent, bar.tune_callback())
+        results = tuner.fit()
+    finally:
+        bar.close()
+    trials = _search_trials(results, out, search.metric, probe.steps)
     ranked = sorted((t for t in trials if t.get("metric") is not None), key=lambda t: t["metric"],
                     reverse=search.mode == "max")
     summary = {"search": {**search.__dict__, "steps": probe.steps, "seed": seed},
@@ -226,11 +268,12 @@ def run_search(base: dict, search: Search, seed: int, out: Path, train: Callable
 
 
 def _search_tuner(base: dict, search: Search, seed: int, out: Path, train: Callable[..., Any], probe: TrainConfig,
-                  cpus_per_trial: float, max_concurrent: int | None) -> Any:
+                  cpus_per_trial: float, max_concurrent: int | None, callback: Any) -> Any:
     """The Ray Tune ``Tuner`` of a search: :func:`_search_trial` as the trainable, Optuna's TPE
     sampler (seeded with ``seed``) picking the values and, with ``search.asha``, ASHA stopping
     trials once they trained ``search.grace_period`` env steps (default: the base config's
-    ``eval.every``, or its ``log_every`` without evaluations), up to ``probe.steps``."""
+    ``eval.every``, or its ``log_every`` without evaluations), up to ``probe.steps``; ``callback``
+    hears each trial end (:meth:`TrialProgress.tune_callback`)."""
     from ray import tune
     from ray.tune.schedulers import ASHAScheduler
 
@@ -252,7 +295,7 @@ def _search_tuner(base: dict, search: Search, seed: int, out: Path, train: Calla
         tune_config=tune.TuneConfig(metric=search.metric, mode=search.mode, num_samples=search.trials,
                                     search_alg=OptunaSearch(sampler=optuna.samplers.TPESampler(seed=seed)),
                                     scheduler=scheduler, max_concurrent_trials=max_concurrent),
-        run_config=tune.RunConfig(name="tune", storage_path=str(out / ".tune"), verbose=0),
+        run_config=tune.RunConfig(name="tune", storage_path=str(out / ".tune"), verbose=0, callbacks=[callback]),
     )
 
 
@@ -377,10 +420,11 @@ def _run_trial(config: dict, train: Callable[..., Any]) -> None:
 
 
 def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Path, train: Callable[..., Any],
-              ray_address: str | None = None, cpus_per_trial: float = 1.0, max_concurrent: int | None = None) -> dict:
+              ray_address: str | None = None, cpus_per_trial: float = 1.0, max_concurrent: int | None = None,
+              progress: bool = True) -> dict:
     """Train every trial on Ray Tune with ``train`` (:func:`drivelab.api.train`, handed down by
     the face, which the tools may not import; Ray pickles a module-level function by reference),
-    then summarise (see the module docstring). Returns the summary."""
+    then summarise (see the module docstring). Returns the summary. ``progress``: trials done on stderr."""
     from drivelab.envs.ray_backend import connect, import_ray
 
     trials = plan(grid, seeds)
@@ -395,14 +439,19 @@ def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Pat
     connect(ray_address)
     from ray import tune
 
+    bar = TrialProgress(len(trials), progress)
     tuner = tune.Tuner(
         tune.with_resources(tune.with_parameters(_run_trial, train=train), {"cpu": cpus_per_trial}),
         param_space={"data": tune.grid_search(datas)},
         tune_config=tune.TuneConfig(max_concurrent_trials=max_concurrent, trial_dirname_creator=lambda trial: trial.trial_id),
         run_config=tune.RunConfig(name="tune", storage_path=str(out / ".tune"), verbose=0,
-                                  failure_config=tune.FailureConfig(max_failures=1)),
+                                  failure_config=tune.FailureConfig(max_failures=1),
+                                  callbacks=[bar.tune_callback()]),
     )
-    results = tuner.fit()
+    try:
+        results = tuner.fit()
+    finally:
+        bar.close()
     failed = [r for r in results if r.error is not None]
     summary = summarise(out, trials)
     if failed:

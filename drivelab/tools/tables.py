@@ -40,7 +40,8 @@ def format_table(header: Sequence[str] | None, rows: Sequence[Sequence[Any]], *,
 
 def format_evaluations(rows: list[dict[str, Any]], episodes: int, seed: int, sampled: bool = False) -> str:
     """One line per evaluated policy (a checkpoint's row from ``drivelab eval``, or a baseline's):
-    return and the driving metrics that the env reports, under a line that says the protocol."""
+    return (mean ± standard deviation over the episodes) and the driving metrics that the env
+    reports, under a line that says the protocol."""
     columns = [(key, label) for key, label, _ in DRIVING_METRICS if any(key in row for row in rows)]
     envs = sorted({row["env"] for row in rows})
     title = (f"{episodes} episodes each on {', '.join(envs)} (episode k: seed {seed}+k), "
@@ -48,13 +49,13 @@ def format_evaluations(rows: list[dict[str, Any]], episodes: int, seed: int, sam
     body = [[row.get("policy") or f"{row['checkpoint']} (step {row['step']})",
              f"{row['return_mean']:.1f} ± {row['return_std']:.1f}",
              *(f"{100 * row[key]:.1f}%" if key in row else "-" for key, _ in columns)] for row in rows]
-    return title + "\n" + format_table(["policy", "return", *(label for _, label in columns)], body)
+    return title + "\n" + format_table(["policy", "return (mean ± std)", *(label for _, label in columns)], body)
 
 
 def format_evaluation(summary: dict[str, Any], env_id: str, what: str) -> str:
     """One evaluation, a metric a line: return, episode length, the driving metrics the env
     reports, the mean |CTE| and the reward terms."""
-    rows = [["return", f"{summary['return_mean']:.2f} ± {summary['return_std']:.2f}"],
+    rows = [["return (mean ± std)", f"{summary['return_mean']:.2f} ± {summary['return_std']:.2f}"],
             ["episode length", f"{summary['length_mean']:.1f}"]]
     rows += [[label, f"{100 * summary[key]:.1f} %"] for key, _, label in DRIVING_METRICS if key in summary]
     if "mean_abs_cte" in summary:

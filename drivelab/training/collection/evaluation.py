@@ -5,10 +5,22 @@ on MetaDrive, ``MetaDrive-validation-v0`` with ``seed=0`` visits scenarios 0, 1,
 Loading a checkpoint to evaluate it is :func:`drivelab.api.evaluate_checkpoint`. Evaluation during
 training (:mod:`drivelab.training.run.periodic_evaluation`) plays :func:`evaluation_round`, in the trainer's
 process or in an :class:`EvalActor` (``eval.backend: ray``): the same code either way.
+
+:func:`play` (``drivelab eval``) plays deterministic episodes on subprocess envs inside the env
+workers, each with a copy of the policy (:func:`run_episodes_in_workers`), as training's
+collectors do: no round trip through this process per decision. An episode is reset with its own
+seed either way, so the episodes are those :func:`run_episodes` plays, up to two things that
+already make :func:`run_episodes`' numbers depend on ``--num-envs``: the float rounding of a batch
+of one observation against a batch of N (a discrete action is the same; a continuous one may
+differ in its last bits), and, on MetaDrive, the little history an engine carries from one
+episode to the next (which episodes a worker played before: route completion may move by tenths
+of a percent). ``benchmarks/eval_speed.py`` measures how far the two are apart on MetaDrive.
 """
 
 from __future__ import annotations
 
+import functools
+import pickle
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,10 +28,13 @@ from pathlib import Path
 import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
+from tqdm.auto import tqdm
 
 from drivelab.config import EvalConfig
 from drivelab.envs import EnvConfig, make_vector_env
+from drivelab.envs.supervised import SupervisedVectorEnv
 from drivelab.errors import DrivelabError, kill_point
+from drivelab.training.collection.worker_rollouts import EpisodesInWorker
 from drivelab.training.outputs.episodes import EpisodeTracker
 from drivelab.training.outputs.video import Recorder
 
@@ -40,23 +55,32 @@ class EvalResult:
         out.update({name: float(np.mean(values)) for name, values in self.metrics.items()})
         return out
 
+    @classmethod
+    def empty(cls, episodes: int) -> EvalResult:
+        """Room for ``episodes`` episodes, filled by :meth:`add`."""
+        if episodes < 1:
+            raise DrivelabError(f"the number of evaluation episodes must be >= 1, got {episodes}")
+        return cls(np.zeros(episodes), np.zeros(episodes, np.int64))
+
+    def add(self, k: int, ret: float, length: int, metrics: dict[str, float]) -> None:
+        """Store episode ``k``; a metric that only some episodes report is 0 for the others."""
+        self.returns[k], self.lengths[k] = ret, length
+        for name, value in metrics.items():
+            self.metrics.setdefault(name, np.zeros(len(self.returns)))[k] = value
+
 
 @torch.no_grad()
 def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, deterministic: bool = True,
-                 device: torch.device | str = "cpu", recorder=None) -> EvalResult:
+                 device: torch.device | str = "cpu", recorder=None, bar=None) -> EvalResult:
     """Play exactly ``episodes`` episodes (episode k with seed ``seed + k``) on ``envs``, which must
     use ``AutoresetMode.DISABLED``. ``policy`` has ``act(obs, deterministic)`` and ``to_env(action)``.
     ``recorder`` (:class:`drivelab.training.outputs.video.Recorder`) films env 0's episodes: it is handed the
-    envs after every reset and step."""
-    if episodes < 1:
-        raise DrivelabError(f"the number of evaluation episodes must be >= 1, got {episodes}")
+    envs after every reset and step. ``bar`` (a tqdm bar, or None) advances by one per episode."""
+    result = EvalResult.empty(episodes)
     n = envs.num_envs
     episode_of = np.arange(n)                  # which episode env i is playing (>= episodes: idle)
     next_episode = n
     tracker = EpisodeTracker(n)
-    returns = np.zeros(episodes)
-    lengths = np.zeros(episodes, np.int64)
-    metrics: dict[str, np.ndarray] = {}        # metric -> (episodes,), for those the env reports
     finished = 0
     obs, info = envs.reset(seed=[seed + i for i in range(n)])
     if recorder is not None:
@@ -75,10 +99,10 @@ def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, determin
         for episode in ended:
             k = episode_of[episode.env]
             if k < episodes:
-                returns[k], lengths[k] = episode.ret, episode.length
-                for name, value in episode.metrics.items():
-                    metrics.setdefault(name, np.zeros(episodes))[k] = value
+                result.add(k, episode.ret, episode.length, episode.metrics)
                 finished += 1
+                if bar is not None:
+                    bar.update(1)
                 kill_point("mid-video" if recorder is not None else "mid-evaluation")
             episode_of[episode.env] = next_episode
             reset_seeds[episode.env] = seed + next_episode
@@ -89,22 +113,99 @@ def run_episodes(envs: VectorEnv, policy, episodes: int, seed: int = 0, determin
                 recorder.start(envs, info, episode_of[0])
     if recorder is not None:
         recorder.close()
-    return EvalResult(returns, lengths, metrics)
+    return result
+
+
+# Each worker plays T decisions per call, with two calls queued: it starts the next as soon as it
+# has answered one, and this process hears of finished episodes (the progress bar) every T decisions.
+WORKER_CALL_STEPS, WORKER_CALLS_IN_FLIGHT = 64, 2
+
+
+def run_episodes_in_workers(envs: SupervisedVectorEnv, policy, episodes: int, seed: int = 0,
+                            deterministic: bool = True, bar=None) -> EvalResult:
+    """:func:`run_episodes`' episodes, each played whole inside one env worker with a copy of
+    ``policy`` (``envs`` built with the :class:`EpisodesInWorker` wrapper): worker i plays episodes
+    i, i + N, i + 2N, ... When a worker fails, the workers restart (within the env's restart
+    budget) and the episodes not yet finished are played again from their start."""
+    result = EvalResult.empty(episodes)
+    todo = list(range(episodes))
+    policy_bytes = pickle.dumps(policy)
+    while todo:
+        n = envs.num_envs
+        shares = [([seed + k for k in todo[i::n]],) for i in range(n)]
+        envs.call_queue("start_episodes", policy_bytes, deterministic, each=shares, steps=0)
+        if envs.call_next() is None:  # a worker failed before playing: start again
+            continue
+        todo = _collect_worker_episodes(envs, result, todo, seed, bar)
+    return result
+
+
+def _collect_worker_episodes(envs: SupervisedVectorEnv, result: EvalResult, todo: list[int], seed: int,
+                             bar=None) -> list[int]:
+    """Keep the workers playing their shares of ``todo`` and store each episode they finish in
+    ``result``; returns the episodes left to play: none, or those unfinished when a worker failed."""
+    left = set(todo)
+    queued = 0
+    timeout = envs.step_timeout and envs.step_timeout * WORKER_CALL_STEPS
+    while left or queued:  # once every episode is in, the calls still queued are read (they play nothing)
+        while left and queued < WORKER_CALLS_IN_FLIGHT:
+            envs.call_queue("play_episodes", WORKER_CALL_STEPS, steps=WORKER_CALL_STEPS)
+            queued += 1
+        answers = envs.call_next(timeout)
+        queued -= 1
+        if answers is None:  # the workers restarted: the calls queued are gone, and the episodes in play
+            return sorted(left)
+        for episode in (episode for ended in answers for episode in ended):
+            k = episode.seed - seed
+            result.add(k, episode.ret, episode.length, episode.metrics)
+            left.discard(k)
+            if bar is not None:
+                bar.update(1)
+            kill_point("mid-evaluation")
+    return []
+
+
+def plays_in_workers(env_cfg: EnvConfig, policy, deterministic: bool, recorder=None) -> bool:
+    """Whether :func:`play` plays its episodes inside the env workers: for deterministic actions
+    on subprocess envs, without a video (frames are filmed in this process), and for a policy
+    that can be pickled and that draws from no generator shared by every env (the random
+    baseline: its actions depend on the order the envs ask for them)."""
+    if recorder is not None or not deterministic or env_cfg.resolved_backend() != "async":
+        return False
+    if getattr(policy, "shared_generator", False):
+        return False
+    try:
+        pickle.dumps(policy)
+    except Exception:  # noqa: BLE001 - a policy that cannot travel (a lambda, a handle) plays here
+        return False
+    return True
 
 
 def play(env_cfg: EnvConfig, policy, episodes: int, seed: int = 0, deterministic: bool = True,
-         wrapper=None, recorder=None) -> EvalResult:
-    """``episodes`` episodes of ``policy`` on a vector env built from ``env_cfg`` (then closed);
+         wrapper=None, recorder=None, progress: str | None = None) -> EvalResult:
+    """``episodes`` episodes of ``policy`` on a vector env built from ``env_cfg`` (then closed):
+    inside the env workers where :func:`plays_in_workers` says so, else stepped from this process;
     with a ``recorder``, the envs render ``rgb_array`` frames for it. Sampled actions
     (``deterministic=False``) come from torch's generator seeded with ``seed``, forked so that the
-    caller's generator is left as it was: the same seed gives the same episodes."""
+    caller's generator is left as it was: the same seed gives the same episodes. ``progress`` (a
+    label, e.g. the checkpoint) shows the episodes done, and the time left, on a bar (stderr)."""
+    in_workers = plays_in_workers(env_cfg, policy, deterministic, recorder)
+    if in_workers:
+        wrapper = functools.partial(EpisodesInWorker, inner=wrapper)
     envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, wrapper=wrapper,
                            render_mode="rgb_array" if recorder is not None else None)
+    # as training's bar (drivelab.training.run.metrics), in episodes
+    bar = tqdm(total=episodes, desc=progress, unit="episode", dynamic_ncols=True, disable=progress is None,
+               mininterval=0.5, smoothing=0.1)
     try:
+        if in_workers:
+            return run_episodes_in_workers(envs, policy, episodes, seed=seed, deterministic=deterministic, bar=bar)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic, recorder=recorder)
+            return run_episodes(envs, policy, episodes, seed=seed, deterministic=deterministic, recorder=recorder,
+                                bar=bar)
     finally:
+        bar.close()
         envs.close()
 
 

@@ -23,6 +23,7 @@ from gymnasium.vector import AutoresetMode
 
 from drivelab.config import EnvConfig, TrainConfig
 from drivelab.envs import make_vector_env
+from drivelab.training.collection.checks import check_finite_step
 from drivelab.training.collection.exploration import Exploration
 from drivelab.training.collection.worker_rollouts import ActorInWorker
 from drivelab.training.learning.hyperparams import OffPolicyParams
@@ -171,6 +172,7 @@ class SyncReplayCollector(ReplayCollector):
         with self.run.timing.env:
             next_obs, reward, terminated, truncated, info = self.envs.step(
                 agent.to_env(torch.as_tensor(action, dtype=torch.float32)))
+        check_finite_step(next_obs, reward, self.steps)
         done = terminated | truncated
         self.buffer.add(self.obs, action, reward, next_obs, terminated, truncated)
         self.run.episodes.step(reward, done, info)
@@ -249,6 +251,8 @@ class AsyncReplayCollector(ReplayCollector):
         obs, actions, rewards, next_obs, terminated, truncated = (
             np.stack([getattr(chunk, name) for chunk in chunks], axis=1)
             for name in ("obs", "actions", "rewards", "next_obs", "terminated", "truncated"))
+        for env in range(self.num_envs):
+            check_finite_step(next_obs[:, env][None], rewards[:, env][None], self.steps, first_env=env)
         flat = lambda x: x.reshape(-1, *x.shape[2:])  # noqa: E731
         self.buffer.add(flat(obs), flat(actions), flat(rewards), flat(next_obs), flat(terminated), flat(truncated))
         done = terminated | truncated

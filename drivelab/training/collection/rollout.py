@@ -25,6 +25,7 @@ from gymnasium.vector import AutoresetMode
 
 from drivelab.config import EnvConfig, TrainConfig
 from drivelab.envs.groups import EnvGroups
+from drivelab.training.collection.checks import check_finite_step
 from drivelab.training.collection.worker_rollouts import PolicyInWorker
 from drivelab.training.learning.hyperparams import ActorCriticParams
 from drivelab.training.learning.normalize import RewardScaler
@@ -121,6 +122,7 @@ class RolloutCollector:
                 group = self.envs.wait_any(in_flight)
                 obs, reward, terminated, truncated, info = self.envs.receive(group)
             envs, t = self.envs.slices[group], row[group]
+            check_finite_step(obs, reward, self.run.step, first_env=envs.start)
             self.obs[envs] = obs
             done = terminated | truncated
             self.run.episodes.step(reward, done, info, first_env=envs.start)
@@ -156,6 +158,7 @@ class RolloutCollector:
             self.run.episodes.restart(every_env)
             self.envs.reset(self.run.reset_seeds(every_env))
         for env, rollout in enumerate(rollouts):
+            check_finite_step(rollout.obs[None], rollout.rewards[None], self.run.step, first_env=env)
             buf.write_env(env, rollout)
         # Episode bookkeeping step by step, as if the trainer had stepped the envs.
         for t in range(num_steps):

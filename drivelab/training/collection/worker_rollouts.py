@@ -18,10 +18,16 @@ V(final observation), computed in the worker with the same weights.
 The off-policy algorithms use :class:`ActorInWorker`: a worker plays a chunk of steps with a copy
 of the actor and its exploration, and returns the transitions (s, a, r, s', terminated,
 truncated) for the replay buffer, while the learner updates (:mod:`drivelab.training.collection.replay`).
+
+Evaluation uses :class:`EpisodesInWorker`: a worker plays whole evaluation episodes with a copy of
+the policy, each reset with its own seed, and returns each episode's return, length and metrics
+(:func:`drivelab.training.collection.evaluation.run_episodes_in_workers`).
 """
 
 from __future__ import annotations
 
+import pickle
+from collections import deque
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -29,10 +35,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from drivelab.training.collection.checks import check_finite_step
 from drivelab.training.collection.exploration import Exploration
 from drivelab.training.learning.offpolicy_nets import OffPolicyAgent
 from drivelab.training.learning.policy_nets import ActorCritic, sample
-from drivelab.training.outputs.episodes import is_episode_metric
+from drivelab.training.outputs.episodes import DRIVING_METRICS, is_episode_metric
 
 
 class WorkerRollout(NamedTuple):
@@ -92,6 +99,7 @@ class PolicyInWorker(gym.Wrapper):
             action = sample(dist, self.generator)
             actions[t], log_probs[t], values[t] = action[0].numpy(), dist.log_prob(action)[0], value[0]
             obs, rewards[t], terminated[t], truncated[t], info = self.env.step(self.policy.to_env(action)[0])
+            check_finite_step(obs[None], rewards[t:t + 1], None)  # before the policy acts on obs
             if terminated[t] or truncated[t]:
                 if truncated[t] and not terminated[t]:  # a time limit: the state had a future
                     final_values[t] = self.policy.value(torch.as_tensor(obs).unsqueeze(0))[0]
@@ -170,6 +178,7 @@ class ActorInWorker(gym.Wrapper):
                 actions[t] = self.exploration(self.agent, torch.as_tensor(self.obs).unsqueeze(0), step + t * step_stride)[0]
             obs, rewards[t], terminated[t], truncated[t], info = self.env.step(
                 self.agent.to_env(torch.as_tensor(actions[t]).unsqueeze(0))[0])
+            check_finite_step(obs[None], rewards[t:t + 1], None)
             next_obs_buf[t] = obs
             if terminated[t] or truncated[t]:
                 episode_info[t] = {key: float(x) for key, x in info.items() if is_episode_metric(key)}
@@ -177,3 +186,64 @@ class ActorInWorker(gym.Wrapper):
                 obs, _ = self.env.reset()
             self.obs = obs
         return WorkerTransitions(obs_buf, actions, rewards, next_obs_buf, terminated, truncated, episode_info)
+
+
+class WorkerEpisode(NamedTuple):
+    """One evaluation episode, played whole by a worker (what crosses the pipe)."""
+    seed: int                     # the seed the env was reset with: which episode it was
+    ret: float                    # undiscounted return, summed step by step as EpisodeTracker sums it
+    length: int
+    metrics: dict[str, float]     # driving metrics and reward-term sums, under their logged names
+
+
+class EpisodesInWorker(gym.Wrapper):
+    """Wraps the env in its worker process; plays evaluation episodes with a local copy of the policy.
+
+    :meth:`start_episodes` hands the worker the policy and the seeds of the episodes it plays, in
+    order; each :meth:`play_episodes` then plays up to T more decisions and returns the episodes
+    that ended. The worker resets the env itself, with each episode's seed. ``inner`` (a baseline's
+    observation wrapper, see :mod:`drivelab.tools.baselines`) goes on the env first.
+    """
+
+    def __init__(self, env: gym.Env, inner: Callable[[gym.Env], gym.Env] | None = None):
+        super().__init__(inner(env) if inner is not None else env)
+        self.policy = None
+        self.deterministic = True
+        self.seeds: deque[int] = deque()        # the episodes still to start
+        self.obs: np.ndarray | None = None      # None between episodes
+        self.episode_seed, self.ret, self.length = 0, 0.0, 0
+
+    def start_episodes(self, policy: bytes, deterministic: bool, seeds: list[int]) -> None:
+        """Take the pickled policy (``act(obs, deterministic)``, ``to_env(action)``) and the seeds
+        of the episodes to play; any episode in progress is dropped."""
+        torch.set_num_threads(1)  # one core per worker: the workers share the machine
+        self.policy, self.deterministic = pickle.loads(policy), deterministic
+        self.seeds, self.obs = deque(seeds), None
+
+    @torch.no_grad()
+    def play_episodes(self, num_steps: int) -> list[WorkerEpisode]:
+        """Play up to ``num_steps`` decisions (fewer when the last episode ends); returns the
+        episodes that ended, oldest first."""
+        ended = []
+        for _ in range(num_steps):
+            if self.obs is None:
+                if not self.seeds:
+                    break
+                self.episode_seed, self.ret, self.length = self.seeds.popleft(), 0.0, 0
+                obs, _ = self.env.reset(seed=self.episode_seed)
+                self.obs = self._as_space(obs)
+            action = self.policy.act(torch.as_tensor(self.obs).unsqueeze(0), deterministic=self.deterministic)
+            obs, reward, terminated, truncated, info = self.env.step(self.policy.to_env(action)[0])
+            self.ret += float(reward)
+            self.length += 1
+            self.obs = self._as_space(obs)
+            if terminated or truncated:
+                metrics = {DRIVING_METRICS.get(key, key): float(x) for key, x in info.items() if is_episode_metric(key)}
+                ended.append(WorkerEpisode(self.episode_seed, self.ret, self.length, metrics))
+                self.obs = None
+        return ended
+
+    def _as_space(self, obs) -> np.ndarray:
+        """The observation in the space's dtype, as a vector env hands it to the trainer (an env may
+        return float64 for a float32 space): the policy then computes what it computes in-process."""
+        return np.asarray(obs, dtype=self.observation_space.dtype)

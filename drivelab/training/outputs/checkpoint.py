@@ -142,12 +142,33 @@ def resolve_checkpoint(path: str | Path) -> Path:
         return path
     if path.name == "best" and not path.exists() and (path.parent / "checkpoints" / "best").is_dir():
         return path.parent / "checkpoints" / "best"
+    if path.name == "best" and not path.exists():
+        _refuse_missing_best(path)
     if not path.exists():
         raise DrivelabError(f"checkpoint or run directory not found: {path}")
     found = list_checkpoints(path)
     if not found:
         raise DrivelabError(f"no checkpoint found in {path}")
     return found[-1]
+
+
+def _refuse_missing_best(path: Path) -> None:
+    """``RUN/best`` (or ``RUN/checkpoints/best``) asked of a run that kept no best checkpoint: one
+    line that says why (no evaluation ran during training) and what to do instead. A path that
+    is not in a run is left to the caller's "not found"."""
+    run = path.parent.parent if path.parent.name == "checkpoints" else path.parent
+    found = list_checkpoints(run)
+    if not found:
+        return
+    try:  # the run's config, as its latest checkpoint saved it: was evaluation on at all?
+        every = json.loads((found[-1] / "state.json").read_text())["config"]["eval"]["every"]
+    except (OSError, ValueError, KeyError, TypeError):
+        every = 0
+    if every:
+        raise DrivelabError(f"{path}: no evaluation has run yet in {run} (eval.every {every}), so there is no best "
+                            f"checkpoint: load the latest checkpoint instead ({run})")
+    raise DrivelabError(f"{path}: no evaluation ran in {run} (eval.every 0), so there is no best checkpoint: train with "
+                        f"eval.every > 0 (--eval.every N) to keep one, or load the latest checkpoint ({run})")
 
 
 def checkpoint_step(path: str | Path) -> int:

@@ -12,6 +12,7 @@ import csv
 import json
 import math
 import os
+import shlex
 import shutil
 import sys
 import time
@@ -160,7 +161,8 @@ class Tracker:
         if mode is None and not wandb.login(prompt=False, verify=False):
             mode = "offline"  # no key: never stop a run to ask for one
             print(f"drivelab: W&B has no API key here (wandb login), so it logs offline to {self.run_dir / 'wandb'}; "
-                  f"upload later with: wandb sync {self.run_dir / 'wandb'}/offline-run-*", file=sys.stderr)
+                  f"upload later with: wandb sync {shlex.quote(str(self.run_dir / 'wandb'))}/offline-run-*",
+                  file=sys.stderr)  # the directory shell-quoted, the glob left for the shell
         id_file = self.run_dir / "wandb_run_id"
         run_id = id_file.read_text().strip() if id_file.exists() else uuid.uuid4().hex[:8]
         id_file.write_text(run_id)

@@ -16,6 +16,12 @@ import cv2
 import imageio.v2 as imageio
 import numpy as np
 
+from drivelab.config import check_output_path
+from drivelab.errors import DrivelabError
+
+# What a video file may be called: MP4 (H.264 through ffmpeg) or an animated GIF.
+VIDEO_SUFFIXES = (".mp4", ".gif")
+
 
 def overlay(frame: np.ndarray, lines: list[str]) -> np.ndarray:
     """``lines`` of white text on a dark band at the top-left of an (H, W, 3) uint8 frame."""
@@ -35,6 +41,18 @@ def _value(info: dict, key: str) -> float | None:
     return float(np.asarray(info[key])[0])
 
 
+def check_video_path(path: Path, per_episode: bool = False) -> None:
+    """The video file (or with ``per_episode`` the directory of one file per episode) can be
+    written, with a name that says MP4 or GIF: one line before the episodes are played, not a
+    traceback after them."""
+    if per_episode:
+        check_output_path(path, "--video-dir", directory=True)
+        return
+    check_output_path(path, "--video")
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise DrivelabError(f"--video: {path} must end in {' or '.join(VIDEO_SUFFIXES)}, the formats drivelab writes")
+
+
 class Recorder:
     """Films env 0's episodes: into one file (``path`` ends in .mp4 or .gif) or, with
     ``per_episode``, into ``path/episode_<k>.mp4``, k being the evaluation episode index.
@@ -52,6 +70,7 @@ class Recorder:
         self.frames = 0
         self._writer = None
         self._episode, self._t, self._return = 0, 0, 0.0
+        check_video_path(self.path, per_episode)
         (self.path if per_episode else self.path.parent).mkdir(parents=True, exist_ok=True)
 
     def _recording(self) -> bool:

@@ -19,17 +19,38 @@ import torch
 from drivelab.config import TrainConfig, save_config
 from drivelab.errors import DrivelabError, kill_point
 
+MARKER = ".drivelab-run"   # written into every run directory drivelab creates
+
 
 def open_run_dir(cfg: TrainConfig) -> TextIO:
-    """Create and lock ``cfg.run_dir``, remove stale temporaries and write ``config.yaml``.
-    Returns the lock's file: the lock is held until it is closed."""
+    """Create (or recognise) and lock ``cfg.run_dir``, remove stale temporaries and write
+    ``config.yaml``. Returns the lock's file: the lock is held until it is closed."""
     run_dir = Path(cfg.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    claim_run_dir(run_dir)
     lock = lock_run_dir(run_dir)
     remove_stale_temporaries(run_dir)
     kill_point("before-config")
     save_config(cfg, run_dir / "config.yaml")  # atomic: the file is whole or absent
     return lock
+
+
+def claim_run_dir(run_dir: Path) -> None:
+    """Make ``run_dir`` drivelab's: create it with its marker, or accept a directory that holds
+    the marker, that is empty, or that is a run written before markers existed (which gets one).
+    Any other existing directory holds someone's files, which a run would overwrite
+    (``config.yaml``, ``metrics.csv``): refused in one line that names what is there."""
+    if (run_dir / MARKER).is_file():
+        return
+    if run_dir.is_dir():
+        content = sorted(p.name + ("/" if p.is_dir() else "") for p in run_dir.iterdir())
+        # a run written before markers existed, or fetched from MLflow: a config and checkpoints
+        legacy = (run_dir / "config.yaml").is_file() and any((run_dir / "checkpoints").glob("step_*"))
+        if content and not legacy:
+            shown = ", ".join(content[:5]) + (f" and {len(content) - 5} more" if len(content) > 5 else "")
+            raise DrivelabError(f"run directory {run_dir} already exists and is not a drivelab run (it holds {shown}): "
+                                "choose a new --run-dir, or empty this one")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / MARKER).write_text("a drivelab run directory: drivelab trains, resumes and evaluates here\n")
 
 
 def seed_everything(cfg: TrainConfig) -> np.random.Generator:

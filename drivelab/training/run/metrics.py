@@ -12,6 +12,7 @@ import math
 import time
 from collections.abc import Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from tqdm.auto import tqdm
@@ -30,8 +31,9 @@ class RunMetrics:
                  step: int = 0, resumed: bool = False, progress: bool = True):
         self.episodes, self.timing = episodes, timing
         self.tracker = Tracker(run_dir, cfg, resume_step=step if resumed else None)
-        self.pbar = tqdm(total=cfg.steps, initial=step, unit="step", dynamic_ncols=True,
-                         disable=not progress, mininterval=0.5, smoothing=0.1)
+        self.pbar = tqdm(total=cfg.steps, initial=step, unit="step", dynamic_ncols=True, disable=not progress)
+        self._steps, self._limit_s = cfg.steps, None if cfg.max_minutes is None else 60 * cfg.max_minutes
+        self._step, self._next_draw = step, 0.0
         self._sums: dict[str, torch.Tensor | float] = {}
         self._counts: dict[str, int] = {}
         self.start_time, self._start_step = time.perf_counter(), step
@@ -44,6 +46,17 @@ class RunMetrics:
                 value = value.detach()
             self._sums[name] = self._sums[name] + value if name in self._sums else value
             self._counts[name] = self._counts.get(name, 0) + 1
+
+    def stop_if_diverged(self, step: int, last_checkpoint_step: int) -> None:
+        """One line (:func:`check_finite`) as soon as a recorded loss is non-finite, checked every
+        iteration and not only at logs: non-finite weights would make the next rollout fail inside
+        torch instead. One host sync for the losses recorded since the last log."""
+        losses = {name: value for name, value in self._sums.items() if name.startswith("loss/")}
+        if not losses:
+            return
+        values = torch.stack([torch.as_tensor(v, dtype=torch.float32).detach().cpu() for v in losses.values()])
+        if not bool(torch.isfinite(values).all()):
+            check_finite(dict(zip(losses, values.tolist())), step, last_checkpoint_step)
 
     def flush(self) -> dict[str, float]:
         """The means of the recorded metrics since the last flush, as floats (then starts afresh)."""
@@ -65,21 +78,66 @@ class RunMetrics:
         self.tracker.log(step, logged)
         return logged
 
-    def advance(self, step: int, steps: int) -> None:
-        """Move the progress bar by ``steps`` to ``step``, showing the recent episodes' return."""
-        if step > self.pbar.total:  # the last batch finishes its episodes past `steps`
-            self.pbar.total = step
-        self.pbar.update(steps)
+    def advance(self, step: int) -> None:
+        """Move the progress bar to ``step``. It is redrawn at most twice a second, from the step
+        count and the clock only (no host sync), so it costs nothing per env step."""
+        self._step = step
+        now = time.perf_counter()
+        if now >= self._next_draw and not self.pbar.disable:
+            self._next_draw = now + 0.5
+            self._draw(now)
+
+    def _draw(self, now: float) -> None:
+        """Show progress against the bound predicted to end the run first (:func:`bar_view`):
+        env steps against ``steps``, or the time spent against ``max_minutes``."""
+        elapsed = now - self.start_time
+        view = bar_view(self._step, self._steps, elapsed, self._limit_s, self._start_step)
+        self.pbar.n = view.n
+        if view.total != self.pbar.total:
+            self.pbar.total = view.total
+            if hasattr(self.pbar, "container"):  # a Jupyter widget (tqdm.auto): its bar keeps its own maximum
+                self.pbar.container.children[1].max = view.total
+        # tqdm's own format for steps; for time, its bar with our text (tqdm would count seconds as items)
+        self.pbar.bar_format = None
+        if view.by_time:
+            rate = (self._step - self._start_step) / max(elapsed, 1e-9)
+            clock = f"{tqdm.format_interval(view.n)}/{tqdm.format_interval(view.total)} of max_minutes"
+            self.pbar.bar_format = "{l_bar}{bar}| " + f"{clock} [{self._step:,} steps, {rate:,.0f} step/s" + "{postfix}]"
         means = self.episodes.means()
         if means:
             text = f"return {means['episode/return']:.2f}"
             if "episode/success_rate" in means:
                 text += f", success {means['episode/success_rate']:.0%}"
             self.pbar.set_postfix_str(f"{text} (last {len(self.episodes.returns)} ep)", refresh=False)
+        self.pbar.refresh()
 
     def close(self) -> None:
+        if not self.pbar.disable:
+            self._draw(time.perf_counter())  # where the run ended (the last advance may not have been drawn)
         self.pbar.close()
         self.tracker.close()
+
+
+class BarView(NamedTuple):
+    """What the progress bar shows: env steps against ``steps``, or (``by_time``) the seconds
+    spent against ``max_minutes``."""
+    by_time: bool
+    n: float
+    total: float
+
+
+def bar_view(step: int, steps: int, elapsed: float, limit_s: float | None, start_step: int = 0) -> BarView:
+    """Progress against the bound predicted to end the run first, at the rate of this process so
+    far (``start_step``: the step it started from, above 0 on resume). A run that ``max_minutes``
+    (``limit_s`` seconds) will stop before ``steps`` shows time, as a bar in steps would promise
+    an end it never reaches. Until a step is played there is no rate, and the bar counts steps."""
+    played = step - start_step
+    if limit_s is not None and played > 0 and elapsed > 0:
+        seconds_to_steps = (steps - step) * elapsed / played
+        if elapsed + seconds_to_steps > limit_s:
+            return BarView(True, min(elapsed, limit_s), limit_s)
+    # the last batch may finish its episodes past `steps` (REINFORCE, GRPO): the total follows
+    return BarView(False, step, max(steps, step))
 
 
 def check_finite(metrics: dict[str, float], step: int, last_checkpoint_step: int) -> dict[str, float]:
@@ -88,5 +146,6 @@ def check_finite(metrics: dict[str, float], step: int, last_checkpoint_step: int
     for name, value in metrics.items():
         if name.startswith("loss/") and not math.isfinite(value):
             raise DrivelabError(f"training diverged at step {step}: {name} is {value}; the latest checkpoint "
-                                f"(step {last_checkpoint_step}) is the last good one; lower the learning rate")
+                                f"(step {last_checkpoint_step}) is the last good one: lower the learning rate "
+                                "(or max_grad_norm) and resume from it")
     return metrics

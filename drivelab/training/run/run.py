@@ -168,7 +168,8 @@ class Run:
         self._extra_state = extra_state
         self.step += int(steps)
         self.iteration += 1
-        self._metrics.advance(self.step, int(steps))
+        self._metrics.advance(self.step)
+        self._metrics.stop_if_diverged(self.step, self._checkpoints.last_step)  # before the next rollout
         if self.step >= self._next_log or self.done:
             self._next_log = self._after(self.step, self.cfg.log_every)
             self.log(check_finite(self._metrics.flush(), self.step, self._checkpoints.last_step))
