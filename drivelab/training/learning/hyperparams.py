@@ -122,3 +122,54 @@ class NoisyExplorationParams(OffPolicyParams):
             raise DrivelabError(f"config field 'pre_tanh_l2' must be >= 0, got {self.pre_tanh_l2}")
         if self.noise not in ("gaussian", "ou"):
             raise DrivelabError(f"config field 'noise' must be gaussian or ou, got {self.noise!r}")
+
+
+LAGRANGE_UPDATES = ("gradient", "pid")
+
+
+@dataclass
+class ConstraintParams:
+    """The cost constraint of the Lagrangian algorithms (PPO-Lagrangian, SAC-Lagrangian): keep the
+    mean episode cost at or below ``cost_limit``, with a multiplier ``lambda`` on the cost
+    (:class:`drivelab.training.learning.lagrange.LagrangeMultiplier`). A mixin: an algorithm's
+    ``Params`` lists it after its own base and calls :meth:`validate_constraint`."""
+    cost_limit: float = 1.0           # d: the mean episode cost allowed (undiscounted, the env's cost units)
+    cost_gamma: float = 0.99          # discount of the cost critic
+    lagrange: str = "gradient"        # gradient (projected ascent on lambda) | pid (Stooke et al. 2020)
+    lagrange_init: float = 0.0        # lambda at the start
+    lagrange_lr: float = 0.05         # gradient: lambda += lagrange_lr * (measured cost - cost_limit)
+    lagrange_max: float = 100.0       # lambda is clipped to [0, lagrange_max]
+    pid_kp: float = 0.1               # pid: gain on the (smoothed) violation
+    pid_ki: float = 0.01              # pid: gain of the integral of the violation
+    pid_kd: float = 0.01              # pid: gain on the rise of the (smoothed) cost
+    pid_d_delay: int = 10             # pid: the rise is measured against the cost this many updates ago
+    pid_ema: float = 0.95             # pid: smoothing of the violation and the cost (0: none)
+
+    def validate_constraint(self, section: str) -> None:
+        """One line naming ``section.field`` for a value out of range (``section``: the algorithm)."""
+        def number(name: str) -> float:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value \
+                    or value in (float("inf"), float("-inf")):
+                raise DrivelabError(f"config field '{section}.{name}' must be a finite number, got {value!r}")
+            return float(value)
+
+        if number("cost_limit") < 0:
+            raise DrivelabError(f"config field '{section}.cost_limit' must be >= 0 (costs are >= 0, so a negative "
+                                f"limit can never be met), got {self.cost_limit}")
+        if not 0 <= number("cost_gamma") <= 1:
+            raise DrivelabError(f"config field '{section}.cost_gamma' must be in [0, 1], got {self.cost_gamma}")
+        if self.lagrange not in LAGRANGE_UPDATES:
+            raise DrivelabError(f"config field '{section}.lagrange' must be one of {', '.join(LAGRANGE_UPDATES)}, "
+                                f"got {self.lagrange!r}")
+        if number("lagrange_lr") <= 0 or number("lagrange_max") <= 0:
+            raise DrivelabError(f"config fields '{section}.lagrange_lr' and '{section}.lagrange_max' must be > 0")
+        if not 0 <= number("lagrange_init") <= self.lagrange_max:
+            raise DrivelabError(f"config field '{section}.lagrange_init' must be in [0, lagrange_max], "
+                                f"got {self.lagrange_init}")
+        if min(number("pid_kp"), number("pid_ki"), number("pid_kd")) < 0:
+            raise DrivelabError(f"config fields '{section}.pid_kp', 'pid_ki' and 'pid_kd' must be >= 0")
+        if not isinstance(self.pid_d_delay, int) or self.pid_d_delay < 1:
+            raise DrivelabError(f"config field '{section}.pid_d_delay' must be an integer >= 1, got {self.pid_d_delay!r}")
+        if not 0 <= number("pid_ema") < 1:
+            raise DrivelabError(f"config field '{section}.pid_ema' must be in [0, 1), got {self.pid_ema}")

@@ -26,13 +26,33 @@ DRIVING_METRICS = {
     "route_completion": "route_completion",
     "mean_abs_cte": "mean_abs_cte",          # metres from the lane centre, averaged over the episode
     "replayed": "replay_rate",               # the episode replayed a failed scenario (envs.wrappers.ScenarioReplay)
+    "episode_cost": "cost",                  # the episode's summed cost (envs.costs.CostSignal)
+    "stuck": "stuck_rate",                   # ended because the car stood still too long (envs.metadrive)
+    "rolled_over": "rollover_rate",          # ended because the car lay on its side or roof (envs.metadrive)
 }
 
 
 def is_episode_metric(key: str) -> bool:
     """Whether the tracker keeps this ``info`` key: a driving metric, or the episode sum of a
-    shaped reward term (``reward/<term>``, see :mod:`drivelab.envs.rewards`)."""
-    return key in DRIVING_METRICS or key.startswith("reward/")
+    shaped reward term (``reward/<term>``, see :mod:`drivelab.envs.rewards`) or of a cost term
+    (``cost/<term>``, see :mod:`drivelab.envs.costs`)."""
+    return key in DRIVING_METRICS or key.startswith(("reward/", "cost/"))
+
+
+def step_costs(info: dict, done: np.ndarray) -> np.ndarray:
+    """(n,) the cost of each env's last step, from a vector env's batched ``info`` (``info["cost"]``,
+    which :class:`drivelab.envs.costs.CostSignal` puts there): for an env whose episode ended
+    under ``SAME_STEP`` autoreset, from ``final_info`` (the top level is the next episode's reset).
+    Envs without a cost (missing key) cost 0."""
+    n = len(done)
+    costs = np.zeros(n)
+    if "cost" in info:
+        costs[:] = np.where(info.get("_cost", np.ones(n, bool)), info["cost"], 0.0)
+    final = info.get("final_info")
+    if final and "cost" in final:
+        ended = done & final.get("_cost", np.ones(n, bool))
+        costs[ended] = np.asarray(final["cost"])[ended]
+    return costs
 
 
 def episode_info(info: dict, index: int) -> dict[str, float]:
@@ -64,6 +84,9 @@ class EpisodeTracker:
         self.extra: dict[str, deque[float]] = {}
         self.window = window
         self.total_episodes = 0
+        # Every counted episode's cost, summed since the run began (the safe-exploration measure,
+        # and what the Lagrange multiplier reads), and the episodes that reported one.
+        self.cost_total, self.cost_episodes = 0.0, 0
 
     def step(self, rewards: np.ndarray, done: np.ndarray, info: dict,
              counted: np.ndarray | None = None, first_env: int = 0) -> list[Episode]:
@@ -100,12 +123,16 @@ class EpisodeTracker:
         for name, value in episode.metrics.items():
             self.extra.setdefault(name, deque(maxlen=self.window)).append(value)
         self.total_episodes += 1
+        if "cost" in episode.metrics:
+            self.cost_total += episode.metrics["cost"]
+            self.cost_episodes += 1
 
     def state(self) -> dict:
         """The window of finished episodes, JSON-able (checkpointed, so a resumed run logs the
         same means as an uninterrupted one)."""
         return {"returns": list(self.returns), "lengths": list(self.lengths),
-                "extra": {name: list(values) for name, values in self.extra.items()}, "total": self.total_episodes}
+                "extra": {name: list(values) for name, values in self.extra.items()}, "total": self.total_episodes,
+                "cost_total": self.cost_total, "cost_episodes": self.cost_episodes}
 
     def load_state(self, state: dict) -> None:
         self.returns.extend(state["returns"])
@@ -113,6 +140,8 @@ class EpisodeTracker:
         for name, values in state["extra"].items():
             self.extra.setdefault(name, deque(maxlen=self.window)).extend(values)
         self.total_episodes = int(state["total"])
+        self.cost_total = float(state.get("cost_total", 0.0))  # absent in checkpoints written before costs
+        self.cost_episodes = int(state.get("cost_episodes", 0))
 
     def means(self, prefix: str = "episode/") -> dict[str, float]:
         if not self.returns:
