@@ -3,6 +3,15 @@
     python benchmarks/drive_recipe.py --seeds 0 --runs runs/drive      # trains, evaluates on 0-199
     python benchmarks/ship_driver.py runs/drive/seed_0 --benchmark benchmarks/results/drive_recipe.json
 
+A safe driver, evaluated on SafeMetaDrive's validation scenarios (its card adds the episode cost
+when heldout.json has it per episode):
+
+    python benchmarks/ship_driver.py RUN --name drivelab-safe-driver --config safe_drive \
+        --env SafeMetaDrive-validation-v0 --summary "..." --benchmark benchmarks/results/safe_drive.json
+
+``--protocol`` replaces the card's description of the evaluation (default: PROTOCOL, or
+SAFE_PROTOCOL for a SafeMetaDrive env, with the run's training env filled in).
+
 Takes ``RUN/checkpoints/best`` (chosen during training on scenarios disjoint from the reported
 ones) and keeps the policy alone (``TrainedPolicy.save``: the same tensors). Its evaluation on
 MetaDrive's protocol (the 200 unseen validation scenarios, start seeds 0-199, default traffic,
@@ -30,6 +39,12 @@ from drivelab.training.outputs.checkpoint import checkpoint_step
 PROTOCOL = ("MetaDrive's generalization protocol: trained on MetaDrive-1000envs (start seed 1000, 1000 "
             "scenarios); evaluated deterministically on the 200 unseen scenarios of start seeds 0-199 "
             "(MetaDrive-validation-v0, default traffic), episode k on scenario k")
+SAFE_PROTOCOL = ("MetaDrive's generalization protocol with a cost: trained on {train_env}; evaluated "
+                 "deterministically on the 200 unseen scenarios of start seeds 0-199 (SafeMetaDrive-validation-v0: "
+                 "default traffic, accidents on the road, a crash does not end the episode), episode k on "
+                 "scenario k; cost: 1 for each step out of the road or in contact with a vehicle or an object")
+# What the card keeps of each held-out episode (replayed by tests/test_drivers.py), when heldout.json has it.
+PER_EPISODE = ("success_rate", "route_completion", "cost")
 
 
 def observation_description(env_kwargs: dict) -> str:
@@ -46,6 +61,10 @@ def main() -> int:
     parser.add_argument("--config", default="drive", help="the shipped config the run used (for the card)")
     parser.add_argument("--summary", default="TD3 that drives MetaDrive roads it has never seen")
     parser.add_argument("--benchmark", type=Path, default=Path("benchmarks/results/drive_recipe.json"))
+    parser.add_argument("--env", default="MetaDrive-validation-v0",
+                        help="the env heldout.json was evaluated on (the card's reproduce command)")
+    parser.add_argument("--protocol", help="the card's description of the evaluation (default: PROTOCOL, or "
+                        "SAFE_PROTOCOL for a SafeMetaDrive env)")
     args = parser.parse_args()
     best = args.run / "checkpoints" / "best"
     heldout = json.loads((args.run / "heldout.json").read_text())
@@ -54,6 +73,8 @@ def main() -> int:
         raise SystemExit(f"{args.run / 'heldout.json'} is of step {heldout['step']}, checkpoints/best of {checkpoint_step(best)}")
     policy = api.load(best)
     cfg = policy.config
+    protocol = args.protocol or (SAFE_PROTOCOL.format(train_env=cfg.env.id) if args.env.startswith("SafeMetaDrive")
+                                 else PROTOCOL)
     with tempfile.TemporaryDirectory() as tmp:
         saved = policy.save(Path(tmp) / "policy")
         step = checkpoint_step(best)
@@ -67,21 +88,24 @@ def main() -> int:
                 "minutes": training["minutes"], "steps_trained": training["steps"], "machine": "2 CPU cores, no GPU",
                 "drivelab_commit": commit, "metadrive_version": version("metadrive-simulator"),
                 "selection": f"checkpoints/best: highest {cfg.eval.best_metric} on {cfg.eval.env_id} scenarios "
-                             f"{cfg.eval.seed}-{cfg.eval.seed + cfg.eval.episodes - 1}, every {cfg.eval.every:,} steps",
+                             f"{cfg.eval.seed}-{cfg.eval.seed + cfg.eval.episodes - 1}, every {cfg.eval.every:,} steps"
+                             + ("" if cfg.eval.cost_limit is None else
+                                f", evaluations with a mean episode cost <= {cfg.eval.cost_limit:g} first"),
                 # the config's own time budget when it has one (training.json's minutes include the
                 # evaluation of the final policy after it)
                 "reproduce": f"drivelab train --config {args.config} --seed {cfg.seed} --max_minutes "
                              f"{cfg.max_minutes or round(training['minutes']):g} --run-dir runs/{args.name} && "
-                             f"drivelab eval runs/{args.name}/checkpoints/best --env MetaDrive-validation-v0 "
-                             f"--episodes 200 --num-envs 2 --json",
+                             f"drivelab eval runs/{args.name}/checkpoints/best --env {args.env} "
+                             f"--episodes {len(heldout['per_episode']['success_rate'])} --num-envs 2 --json",
             },
             "observation": observation_description(cfg.env.kwargs),
             "observation_shape": list(policy.observation_space.shape),
             "evaluation": {
-                "protocol": PROTOCOL, "episodes": len(heldout["per_episode"]["success_rate"]),
+                "protocol": protocol, "episodes": len(heldout["per_episode"]["success_rate"]),
                 "policies": {args.name: card_metrics(heldout["per_episode"]),
                              "metadrive-expert": card_metrics(expert["per_episode"])},
-                "per_episode": {name: heldout["per_episode"][name] for name in ("success_rate", "route_completion")},
+                "per_episode": {name: heldout["per_episode"][name] for name in PER_EPISODE
+                                if name in heldout["per_episode"]},
             },
         }
         out = write_driver(DRIVERS_DIR / args.name, saved, card)

@@ -34,6 +34,7 @@ import dacite
 import yaml
 
 from drivelab.envs.config import BACKENDS, EnvConfig  # noqa: F401  (re-exported: the env section)
+from drivelab.envs.costs import refuse_cost_to_reward
 from drivelab.errors import DrivelabError
 
 
@@ -55,6 +56,9 @@ class EvalConfig:
     num_envs: int = 1              # envs that play the evaluation episodes in parallel
     # The checkpoint with the best value of this eval/* metric is kept as checkpoints/best.
     best_metric: str = "return_mean"
+    # Keep as best the evaluations with a mean episode cost (eval/cost) <= this first, then by
+    # best_metric (for an env with a cost: SafeMetaDrive, env.cost). None: the cost is ignored.
+    cost_limit: float | None = None
     # On a new best, film one episode: RUN/videos/step_<N>.mp4 (needs the env's rgb_array render).
     video: bool = True
     # local: the trainer pauses while it evaluates; ray: a Ray actor evaluates a copy of the
@@ -79,7 +83,7 @@ class TrackConfig:
 
 @dataclass
 class TrainConfig:
-    algo: str = "reinforce"           # reinforce, a2c, ppo, grpo, ddpg, td3 or sac
+    algo: str = "reinforce"           # reinforce, a2c, ppo, grpo, ddpg, td3, sac, ppo_lag or sac_lag
     env: EnvConfig = field(default_factory=EnvConfig)
     steps: int = 100_000              # env steps to train for (all envs together)
     # Stop (with a final checkpoint) after this much training time, even if `steps` is not reached.
@@ -479,6 +483,8 @@ def _validate(cfg: TrainConfig) -> None:
         ("eval.episodes", cfg.eval.episodes >= 1, "must be >= 1"),
         ("eval.num_envs", cfg.eval.num_envs >= 1, "must be >= 1"),
         ("eval.backend", cfg.eval.backend in ("local", "ray"), "must be local or ray"),
+        ("eval.cost_limit", cfg.eval.cost_limit is None or 0 <= cfg.eval.cost_limit < math.inf,
+         "must be a finite number >= 0"),
         ("track.wandb_mode", cfg.track.wandb_mode in (None, "online", "offline", "disabled"),
          "must be online, offline or disabled"),
         ("device", cfg.device in ("cpu", "auto") or re.fullmatch(r"cuda(:\d+)?", cfg.device) is not None,
@@ -493,6 +499,7 @@ def _validate(cfg: TrainConfig) -> None:
         _check_writable(Path(cfg.run_dir))
     _check_hyperparameters(cfg.algo, cfg.algo_params)
     cfg.env.validate()
+    refuse_cost_to_reward(cfg.eval.kwargs, "config field 'eval.kwargs'")
     if hasattr(cfg.algo_params, "validate"):
         cfg.algo_params.validate()
     if hasattr(cfg.algo_params, "validate_env"):  # constraints between the algorithm and the env

@@ -200,6 +200,11 @@ CASES = {
     "td3": {"env": {"id": "Pendulum-v1", "num_envs": 2}, "steps": 1200, "td3": {"learning_starts": 400, "hidden": [32, 32], "batch_size": 32}},
     "sac": {"env": {"id": "Pendulum-v1", "num_envs": 1}, "steps": 1200, "sac": {"learning_starts": 400, "hidden": [32, 32], "batch_size": 32},
             "eval": {"every": 600, "episodes": 1}},
+    # the constrained algorithms need an env with a cost (tests/constrained_env.py)
+    "ppo_lag": {"env": {"id": "constrained_env:ThreeLanes-v0", "num_envs": 4}, "steps": 2500, "ppo_lag": {"num_steps": 64}},
+    "sac_lag": {"env": {"id": "constrained_env:ThreeLanes-v0", "num_envs": 1}, "steps": 1200,
+                "sac_lag": {"learning_starts": 400, "hidden": [32, 32], "batch_size": 32, "lagrange_every": 200},
+                "eval": {"every": 600, "episodes": 1, "video": False}},
 }
 
 

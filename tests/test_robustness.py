@@ -280,7 +280,8 @@ BAD_VALUES = {
     "--checkpoint_every": st.integers(max_value=0),
     "--max_minutes": st.floats(max_value=0.0, allow_nan=False),
     "--torch_threads": st.integers(max_value=0),
-    "--algo": _text.filter(lambda t: t not in ("ppo", "a2c", "sac", "td3", "ddpg", "grpo", "reinforce")),
+    "--algo": _text.filter(lambda t: t not in ("ppo", "a2c", "sac", "td3", "ddpg", "grpo", "reinforce", "ppo_lag",
+                                               "sac_lag")),
 }
 UNKNOWN = st.builds(lambda section, name: f"--{section}.{name}", st.sampled_from(["ppo", "env", "eval", "track"]),
                     st.text(alphabet="qwzjk", min_size=3, max_size=8))

@@ -62,4 +62,8 @@ class Registry(Mapping[str, AlgoSpec]):
 
 
 # The algorithms, in the order that help texts and tables list them.
-ALGORITHMS: Registry = Registry(("reinforce", "a2c", "ppo", "grpo", "ddpg", "td3", "sac"))
+ALGORITHMS: Registry = Registry((
+    "reinforce", "a2c", "ppo", "grpo", "ddpg", "td3", "sac",
+    # constrained: maximise the return while the mean episode cost stays under a limit
+    "ppo_lag", "sac_lag",
+))

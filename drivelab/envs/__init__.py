@@ -22,6 +22,7 @@ import gymnasium as gym
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 
 from drivelab.envs.config import EnvConfig
+from drivelab.envs.costs import CostSignal
 from drivelab.envs.filters import apply_filters
 from drivelab.envs.metadrive import held_in_simulator
 from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs, registered_id
@@ -55,8 +56,10 @@ def _check_id(env_id: str) -> str:
 def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
              wrapper: Callable[[gym.Env], gym.Env] | None = None) -> gym.Env:
     """Build one environment from a validated :class:`~drivelab.config.EnvConfig`, then drivelab's
-    wrappers in this order: the replay of failed scenarios (``cfg.scenario_replay``), reward shaping
-    (``cfg.reward``), action adapter (``cfg.action_grid`` or ``cfg.fixed_throttle``), action repeat
+    wrappers in this order: the cost signal (``cfg.cost``, and ``info["episode_cost"]`` for any env
+    that reports a cost: :mod:`drivelab.envs.costs`), the replay of failed scenarios
+    (``cfg.scenario_replay``), reward shaping (``cfg.reward``, whose ``cost`` term sees the cost
+    after ``cfg.cost``'s terms), action adapter (``cfg.action_grid`` or ``cfg.fixed_throttle``), action repeat
     (``cfg.action_repeat``, over the shaped reward; with ``cfg.simulator_repeat``, MetaDrive holds
     the action itself: :func:`~drivelab.envs.metadrive.held_in_simulator`),
     observation filters (``cfg.obs_filters``: they see the observations the agent decides on).
@@ -64,7 +67,7 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
     ``cfg.kwargs`` go to ``gym.make`` (for MetaDrive: any MetaDrive config key, e.g.
     ``{"num_scenarios": 10, "traffic_density": 0.2}``). A task that shapes its reward itself
     (lane following, Duckietown) has its terms replaced by ``cfg.reward``: one route per knob.
-    ``render_mode="rgb_array"`` is for videos; ``wrapper`` goes on last (e.g. a baseline's, see
+    A task's own shaping sees the env's own cost. ``render_mode="rgb_array"`` is for videos; ``wrapper`` goes on last (e.g. a baseline's, see
     :mod:`drivelab.tools.baselines`; a module-level class, so vector envs can pickle it).
     """
     env_id = _check_id(cfg.id)
@@ -80,6 +83,7 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
     env = _make_base_env(cfg.id, env_id, kwargs, render_mode)
+    env = CostSignal(env, cfg.cost)  # silent on an env that reports no cost and has no env.cost terms
     if cfg.scenario_replay:
         env = ScenarioReplay(env, cfg.scenario_replay)
     if cfg.reward:

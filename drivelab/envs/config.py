@@ -11,6 +11,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+from drivelab.envs.costs import refuse_cost_to_reward, validate_cost_config
 from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs, registered_id
 from drivelab.envs.rewards import validate_reward_config
 from drivelab.envs.wrappers import parse_grid
@@ -55,9 +56,13 @@ class EnvConfig:
     # failed before (wrappers.ScenarioReplay, after Prioritized Level Replay); 0: every episode
     # draws its scenario as usual. Evaluation never replays (EnvConfig.played).
     scenario_replay: float = 0.0
-    # Reward shaping: {term: {weight: w, ...params}} over cte, lane, native, progress
+    # Reward shaping: {term: {weight: w, ...params}} over cte, lane, native, progress, idle, cost
     # (drivelab.envs.rewards); replaces the env's reward.
     reward: dict[str, Any] | None = None
+    # Cost terms of constrained RL: {term: {weight: w, ...params}} over native, crash, out_of_road,
+    # solid_line, broken_line, speeding or module:function (drivelab.envs.costs); info["cost"]
+    # becomes their weighted sum. None: the env's own cost, where it reports one.
+    cost: dict[str, Any] | None = None
     # Observation filters, applied in order: names or {name: params} (drivelab.envs.filters).
     obs_filters: list[Any] = field(default_factory=list)
     # keyword overrides for gym.make, e.g. MetaDrive's {num_scenarios: 10, traffic_density: 0.2}
@@ -108,6 +113,9 @@ class EnvConfig:
                 raise DrivelabError(f"config fields '{where}.action_grid' and '{where}.fixed_throttle' exclude each other")
         if self.reward is not None:
             validate_reward_config(self.reward, f"{where}.reward")
+        if self.cost is not None:
+            validate_cost_config(self.cost, f"{where}.cost")
+        refuse_cost_to_reward(self.kwargs, f"config field '{where}.kwargs'")
 
     def on(self, env_id: str, kwargs: dict[str, Any] | None = None) -> EnvConfig:
         """This config (wrappers, filters, action grid) on another env id, e.g. a validation set:

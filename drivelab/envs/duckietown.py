@@ -8,7 +8,8 @@ The adapter turns the simulator's ``reset() -> obs`` / ``step() -> (obs, r, done
 Gymnasium's five-tuple (its step limit is a truncation), drives it with [steering, throttle]
 through :class:`drivelab.envs.wrappers.DifferentialDrive`, and reports the same lane geometry as
 MetaDrive (``cte``, ``heading_error``, ``speed``, ``speed_along_lane``, ``collided``,
-``out_of_road``), so drivelab's reward terms and metrics apply unchanged.
+``out_of_road``), so drivelab's reward terms and metrics apply unchanged, and a ``cost`` of 1 per
+step in a collision (:mod:`drivelab.envs.costs`).
 """
 
 from __future__ import annotations
@@ -91,6 +92,7 @@ class DuckietownGym(gym.Env):
         # No route here (the loop has no destination), so no success or route completion.
         return {"cte": cte, "heading_error": heading, "speed": speed, "speed_along_lane": speed * math.cos(heading),
                 "collided": bool(collided), "crash": bool(collided), "out_of_road": out_of_road,
+                "cost": float(collided),  # constrained RL's cost: 1 per step in a collision (drivelab.envs.costs)
                 "mean_abs_cte": self._abs_cte_sum / max(self._steps, 1)}
 
     def render(self):

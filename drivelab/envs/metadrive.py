@@ -19,8 +19,14 @@ What this adapter adds to ``metadrive.MetaDriveEnv``:
   (the step limit ended it before the destination),
   ``route_completion`` (0..1), ``cost``, ``speed`` (m/s) and ``scenario``, plus the lane geometry
   that driving rewards and metrics are written against (:func:`lane_geometry`): ``cte``,
-  ``heading_error``, ``speed_along_lane``, ``collided`` (this step) and ``native_reward``.
-  Pass ``full_info=True`` for MetaDrive's own dict as well.
+  ``heading_error``, ``speed_along_lane``, ``collided``, ``on_solid_line`` and
+  ``on_broken_line`` (this step) and ``native_reward``. Pass ``full_info=True`` for MetaDrive's
+  own dict as well.
+* **Cars that can go nowhere.** On the ``SafeMetaDrive-*`` ids (where crashes do not end the
+  episode) a car that rolled over or stalled ends its episode as truncated, with
+  ``info["rolled_over"]`` or ``info["stuck"]`` (:class:`StuckGuard`, ``stuck_guard=``).
+* **No** ``cost_to_reward``: SafeMetaDrive 0.4.3 accepts it and ignores it (metadrive#844);
+  drivelab refuses it and points to its ``cost`` reward term (:mod:`drivelab.envs.costs`).
 * **Observations**: ``observation="state"`` (259-d lidar/state vector) or ``"topdown"``
   (MetaDrive's multi-channel bird's-eye raster, uint8 (84, 84, 5): road, lane lines, navigation,
   past positions; drawn with pygame, no 3D assets).
@@ -39,6 +45,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from drivelab.envs.costs import refuse_cost_to_reward
 from drivelab.errors import DrivelabError
 
 # drivelab's defaults on top of MetaDrive's: headless, quiet, and a step limit.
@@ -120,6 +127,58 @@ def _disable_asset_download() -> None:
     BaseEngine.try_pull_asset = staticmethod(lambda: None)
 
 
+def _steps(seconds: float, step_seconds: float) -> int:
+    """The number of env steps of ``step_seconds`` that make ``seconds`` (at least 1)."""
+    return max(1, math.ceil(round(seconds / step_seconds, 6)))
+
+
+class StuckGuard:
+    """Ends an episode that can no longer go anywhere: a car rolled over, or a car that stalled.
+
+    MetaDrive 0.4.3 never ends an episode whose car lies on its roof (metadrive#793): such a car
+    costs nothing, crashes into nothing and runs until the step limit, up to 100 s of useless steps
+    in a batch. :meth:`update` reads the car's state once per env step and answers
+
+    * ``"rolled_over"``: tilted more than ``max_tilt_deg`` from upright for ``rollover_seconds``;
+      the tilt of the car's up axis is arccos(cos(roll) cos(pitch)) (the heading does not move it);
+    * ``"stuck"``: slower than ``stall_speed`` (m/s) with less than ``min_progress`` route
+      completion gained for ``stall_seconds`` (a car waiting at a jam for a few seconds is fine);
+    * ``None`` otherwise.
+
+    ``step_seconds`` is the simulated time of one env step (MetaDrive: decision_repeat x 0.02 s),
+    so the windows are in simulated seconds under ``simulator_repeat`` too. Pure Python.
+    """
+
+    def __init__(self, step_seconds: float, max_tilt_deg: float = 60.0, rollover_seconds: float = 1.0,
+                 stall_speed: float = 0.1, stall_seconds: float = 30.0, min_progress: float = 1e-4):
+        if not step_seconds > 0:
+            raise DrivelabError(f"StuckGuard step_seconds must be > 0, got {step_seconds}")
+        self.max_tilt = math.radians(max_tilt_deg)
+        self.rollover_steps = _steps(rollover_seconds, step_seconds)
+        self.stall_steps = _steps(stall_seconds, step_seconds)
+        self.stall_speed, self.min_progress = stall_speed, min_progress
+        self.reset()
+
+    def reset(self) -> None:
+        """A new episode: no tilted or stalled steps yet."""
+        self.tilted, self.stalled = 0, 0
+        self.anchor: float | None = None  # route completion where the current stall began
+
+    def update(self, roll: float, pitch: float, speed: float, route_completion: float) -> str | None:
+        """One env step (angles in radians, speed in m/s): "rolled_over", "stuck" or None."""
+        tilt = math.acos(max(-1.0, min(1.0, math.cos(roll) * math.cos(pitch))))
+        self.tilted = self.tilted + 1 if tilt > self.max_tilt else 0
+        if speed >= self.stall_speed:
+            self.anchor, self.stalled = None, 0
+        elif self.anchor is None or route_completion - self.anchor >= self.min_progress:
+            self.anchor, self.stalled = route_completion, 1  # a slow step without progress so far: a stall starts
+        else:
+            self.stalled += 1
+        if self.tilted >= self.rollover_steps:
+            return "rolled_over"
+        return "stuck" if self.stalled >= self.stall_steps else None
+
+
 class MetaDriveGym(gym.Env):
     """A single-agent MetaDrive (or SafeMetaDrive) environment; see the module docstring.
 
@@ -129,6 +188,9 @@ class MetaDriveGym(gym.Env):
         safe: use ``SafeMetaDriveEnv`` (the registered ``SafeMetaDrive-*`` ids set this).
         full_info: also return MetaDrive's full info dict.
         render_size: (width, height) of ``render()`` images.
+        stuck_guard: end an episode whose car rolled over or stalled as truncated
+            (:class:`StuckGuard`, ``info["rolled_over"]`` / ``info["stuck"]``); None: on for ``safe``
+            only, so the MetaDrive-* numbers stay as published.
         **overrides: MetaDrive config keys given directly, e.g. ``num_scenarios=10``.
     """
 
@@ -136,10 +198,11 @@ class MetaDriveGym(gym.Env):
 
     def __init__(self, config: dict | None = None, render_mode: str | None = None, safe: bool = False,
                  full_info: bool = False, render_size: tuple[int, int] = (400, 400), observation: str = "state",
-                 **overrides: Any):
+                 stuck_guard: bool | None = None, **overrides: Any):
         # pygame draws the top-down views; headless machines have no display or sound card.
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
+        refuse_cost_to_reward({**(config or {}), **overrides})
         merged = {**DEFAULTS, **(config or {}), **overrides}
         for key, low in (("horizon", 1), ("num_scenarios", 1), ("start_seed", 0)):
             value = merged.get(key)
@@ -178,6 +241,9 @@ class MetaDriveGym(gym.Env):
         self.action_space = self._env.action_space
         self._crashed = False
         self._left_road = False
+        config = self._env.config
+        self._guard = StuckGuard(config["decision_repeat"] * config["physics_world_step_size"]) \
+            if (safe if stuck_guard is None else stuck_guard) else None
 
     @property
     def metadrive(self):
@@ -196,12 +262,25 @@ class MetaDriveGym(gym.Env):
         self._crashed = False
         self._left_road = False
         self._abs_cte_sum, self._steps = 0.0, 0
-        return obs, self._info(info, scenario)
+        lean = self._info(info, scenario)
+        if self._guard is not None:
+            self._guard.reset()
+            lean.update(stuck=False, rolled_over=False)
+        return obs, lean
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self._env.step(action)
         self._steps += 1
-        return obs, float(reward), bool(terminated), bool(truncated), self._info(info, int(self._env.current_seed), reward)
+        lean = self._info(info, int(self._env.current_seed), reward)
+        terminated, truncated = bool(terminated), bool(truncated)
+        if self._guard is not None:
+            agent = self._env.agent
+            verdict = None if terminated or truncated else \
+                self._guard.update(agent.roll, agent.pitch, lean["speed"], lean["route_completion"])
+            lean.update(stuck=verdict == "stuck", rolled_over=verdict == "rolled_over")
+            if verdict is not None:  # the car can go nowhere: end the episode, not as a timeout
+                truncated, lean["timeout"] = True, False
+        return obs, float(reward), terminated, truncated, lean
 
     def _info(self, info: dict, scenario: int, reward: float = 0.0) -> dict:
         collided = bool(info.get("crash", False))
@@ -221,6 +300,8 @@ class MetaDriveGym(gym.Env):
             "speed": float(info.get("velocity", 0.0)),  # m/s
             "scenario": scenario,
             "collided": collided,
+            "on_solid_line": bool(self._env.agent.on_white_continuous_line or self._env.agent.on_yellow_continuous_line),
+            "on_broken_line": bool(self._env.agent.on_broken_line),
             "native_reward": float(reward),
             **geometry,
             "mean_abs_cte": self._abs_cte_sum / max(self._steps, 1),  # over this episode's steps so far

@@ -7,10 +7,11 @@ A reward config maps term names to their parameters (``weight`` scales the term)
       lane: {weight: 0.1}                                           # Duckietown's lane reward
       native: {weight: 0.0}
       idle: {weight: 0.1, min_speed: 2.0}                           # waiting costs 0.1 per step
+      cost: {weight: 5.0}                # minus 5 x the step's cost (drivelab.envs.costs): a fixed price
 
 Each term is a pure function of the step's ``info`` (the lane geometry drivelab's driving envs
 report: ``cte``, ``heading_error``, ``speed``, ``speed_along_lane``, ``collided``,
-``out_of_road``, ``route_completion``, ``native_reward``) and the previous step's info (for
+``out_of_road``, ``route_completion``, ``native_reward``, ``cost``) and the previous step's info (for
 progress). :class:`RewardShaping` replaces the env's reward by the weighted sum, reports each
 term's episode sum as ``info["reward/<term>"]`` (logged as ``episode/reward/<term>``, so a user
 sees which term drives the behaviour), and ends the episode where a term says so.
@@ -95,27 +96,43 @@ def _route_gained(info: dict, prev: dict | None) -> float:
     return info["route_completion"] - (prev["route_completion"] if prev is not None else info["route_completion"])
 
 
+def cost_penalty(info: dict, prev: dict | None) -> TermResult:
+    """Minus the step's cost (``info["cost"]``, after ``env.cost``'s terms: :mod:`drivelab.envs.costs`).
+
+    The reward-shaping baseline of constrained RL: ``env.reward: {native: {}, cost: {weight: W}}``
+    folds the cost into the reward with a fixed price W, where a constrained algorithm (ppo_lag,
+    sac_lag) learns the price (its Lagrange multiplier) that meets a cost limit.
+    """
+    return TermResult(-float(info["cost"]))
+
+
 TERMS: dict[str, Callable[..., TermResult]] = {
     "cte": cte_reward, "lane": lane_reward, "native": native_reward, "progress": progress_reward,
-    "idle": idle_penalty,
+    "idle": idle_penalty, "cost": cost_penalty,
 }
 
 
 # The info keys each shipped term reads: a term is refused, in one line, on an env that lacks them.
 NEEDS: dict[str, tuple[str, ...]] = {
     "cte": ("cte",), "lane": ("cte", "heading_error", "speed"), "native": (), "progress": ("route_completion",),
-    "idle": ("speed",),
+    "idle": ("speed",), "cost": ("cost",),
 }
 
 
-@functools.lru_cache(maxsize=None)
-def term_function(name: str, where: str = "env.reward") -> Callable[..., TermResult | float]:
-    """A shipped term, or the function a ``module:function`` term names."""
-    if name in TERMS:
-        return TERMS[name]
+def term_function(name: str, where: str = "env.reward", table: dict[str, Callable] | None = None,
+                  kind: str = "reward") -> Callable[..., TermResult | float]:
+    """A shipped term of ``table`` (default: the reward terms), or the function a ``module:function`` term names."""
+    table = TERMS if table is None else table
+    if name in table:
+        return table[name]
     if ":" not in name:
-        raise DrivelabError(f"{where}: unknown reward term '{name}' (choose from {', '.join(TERMS)}, "
+        raise DrivelabError(f"{where}: unknown {kind} term '{name}' (choose from {', '.join(table)}, "
                             f"or name your own as module:function)")
+    return _user_term(name, where)
+
+
+@functools.lru_cache(maxsize=None)
+def _user_term(name: str, where: str) -> Callable[..., TermResult | float]:
     from drivelab.envs.registration import import_attribute
 
     function = import_attribute(name, f"{where}.{name}")
@@ -124,37 +141,58 @@ def term_function(name: str, where: str = "env.reward") -> Callable[..., TermRes
     return function
 
 
-def validate_reward_config(config: dict[str, Any], where: str = "env.reward") -> dict[str, dict]:
-    """Check term names and parameters; returns {term: params} with ``weight`` split off later."""
+def validate_terms(config: dict[str, Any], table: dict[str, Callable], where: str, kind: str) -> dict[str, dict]:
+    """Check the term names and parameters of a reward or cost config against ``table``; returns
+    {term: {"weight": w, **params}}. A shipped term is called once on a probe step, so a wrong
+    parameter is one line here, not an error deep inside a run."""
     if not isinstance(config, dict) or not config:
-        raise DrivelabError(f"{where} must map reward terms ({', '.join(TERMS)}, or module:function) to their parameters")
+        raise DrivelabError(f"{where} must map {kind} terms ({', '.join(table)}, or module:function) to their parameters")
     clean = {}
     for name, params in config.items():
-        function = term_function(name, where)
+        function = term_function(name, where, table, kind)
+        if params is not None and not isinstance(params, dict):
+            raise DrivelabError(f"{where}.{name} must map parameter names to values, got {params!r}")
         params = dict(params or {})
         weight = params.pop("weight", 1.0)
         try:
-            if name in TERMS:  # a user's term may read keys the probe lacks: it is called on real steps only
+            if name in table:  # a user's term may read keys the probe lacks: it is called on real steps only
                 function(_PROBE_INFO, None, **params)
         except TypeError as exc:
             raise DrivelabError(f"{where}.{name}: {exc}".replace(f"{function.__name__}() ", "")) from None
-        if not isinstance(weight, (int, float)):
+        if not isinstance(weight, (int, float)) or isinstance(weight, bool) or not math.isfinite(weight):
             raise DrivelabError(f"{where}.{name}.weight must be a number, got {weight!r}")
         clean[name] = {"weight": float(weight), **params}
     return clean
 
 
+def validate_reward_config(config: dict[str, Any], where: str = "env.reward") -> dict[str, dict]:
+    """Check reward term names and parameters (:func:`validate_terms` over :data:`TERMS`)."""
+    return validate_terms(config, TERMS, where, "reward")
+
+
 _PROBE_INFO = {"cte": 0.0, "heading_error": 0.0, "speed": 0.0, "speed_along_lane": 0.0, "collided": False,
-               "out_of_road": False, "route_completion": 0.0, "native_reward": 0.0}
+               "out_of_road": False, "route_completion": 0.0, "native_reward": 0.0, "cost": 0.0,
+               "on_solid_line": False, "on_broken_line": False}
 
 
-def score(config: dict[str, dict], info: dict, prev: dict | None) -> tuple[float, dict[str, float], bool]:
-    """(total reward, weighted value of each term, terminate?) of one step under ``config``."""
+def missing_info(config: dict[str, dict], needs: dict[str, tuple[str, ...]], info: dict, kind: str, hint: str) -> None:
+    """Refuse, in one line, a term that reads an info key this env does not report."""
+    for name in config:
+        missing = [key for key in needs.get(name, ()) if key not in info]
+        if missing:
+            raise DrivelabError(f"{kind} term '{name}' needs info['{missing[0]}'], which this env does not report "
+                                f"({hint})")
+
+
+def score(config: dict[str, dict], info: dict, prev: dict | None,
+          table: dict[str, Callable] | None = None) -> tuple[float, dict[str, float], bool]:
+    """(total, weighted value of each term, terminate?) of one step under ``config``, whose terms
+    come from ``table`` (default: the reward terms) or are a user's ``module:function``."""
     total, parts, terminate = 0.0, {}, False
     for name, params in config.items():
         params = dict(params)
         weight = params.pop("weight", 1.0)
-        result = term_function(name)(info, prev, **params)
+        result = term_function(name, table=table)(info, prev, **params)
         if not isinstance(result, TermResult):  # a user's term may return a plain number
             result = TermResult(float(result))
         parts[name] = weight * result.value
@@ -187,11 +225,7 @@ class RewardShaping(gym.Wrapper):
 
     def step(self, action):
         obs, env_reward, terminated, truncated, info = self.env.step(action)
-        for name in self.config:
-            missing = [key for key in NEEDS.get(name, ()) if key not in info]
-            if missing:
-                raise DrivelabError(f"reward term '{name}' needs info['{missing[0]}'], which this env does not report "
-                                    f"(terms for any env: native, or your own module:function)")
+        missing_info(self.config, NEEDS, info, "reward", "terms for any env: native, or your own module:function")
         # what the terms see: the env's own reward (unless a driving env reported it), and for a
         # user's term the observation and the action
         seen = {"native_reward": float(env_reward), **info, "observation": obs, "action": action}

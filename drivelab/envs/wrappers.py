@@ -84,7 +84,8 @@ class FixedThrottle(gym.ActionWrapper):
 
 class ActionRepeat(gym.Wrapper):
     """Each action is held for ``repeat`` env steps (frame skip; Mnih et al. 2015 hold Atari's
-    actions for 4 frames): the rewards of those steps are summed, the observation and info are the
+    actions for 4 frames): the rewards of those steps are summed, as are their costs
+    (``info["cost"]``, :mod:`drivelab.envs.costs`); the observation and the rest of the info are the
     last step's, and an episode that ends (terminated or truncated) inside the repeat ends there.
 
     The env itself is unchanged (its traffic, physics and horizon still run at its own step), only
@@ -101,12 +102,15 @@ class ActionRepeat(gym.Wrapper):
         self.metadata = {**env.metadata, "action_repeat": self.repeat}
 
     def step(self, action):
-        total = 0.0
+        total, cost = 0.0, 0.0
         for _ in range(self.repeat):
             obs, reward, terminated, truncated, info = self.env.step(action)
             total += float(reward)
+            cost += float(info.get("cost", 0.0))
             if terminated or truncated:
                 break
+        if "cost" in info:  # the decision's cost, summed like its reward (info["episode_cost"] is already a running sum)
+            info = {**info, "cost": cost}
         return obs, total, terminated, truncated, info
 
 

@@ -6,10 +6,11 @@ weights and observation statistics; ``state.json``: the run's config and step) a
 ``card.json``, its model card: how it was trained (algorithm, config, seed, steps, wall clock,
 drivelab commit, MetaDrive version, the command that reproduces it), its evaluation on
 MetaDrive's protocol (the 200 unseen scenarios, start seeds 0-199: success, crash, out of road,
-route completion with 95% confidence intervals, per episode too) beside MetaDrive's expert on
-the same scenarios, and the sha256 of each file. ``SHA256SUMS`` (the format of ``sha256sum``, so
-``sha256sum -c SHA256SUMS`` checks it too) holds the sha256 of every file, the card included: an
-edited card (a forged success rate) is refused like a changed weight file.
+route completion and, on SafeMetaDrive, the episode cost, with 95% confidence intervals, per
+episode too) beside MetaDrive's expert on the same scenarios, and the sha256 of each file.
+``SHA256SUMS`` (the format of ``sha256sum``, so ``sha256sum -c SHA256SUMS`` checks it too) holds
+the sha256 of every file, the card included: an edited card (a forged success rate) is refused
+like a changed weight file.
 
 Everything that takes a run or a checkpoint takes a shipped driver's name (``drivelab eval
 drivelab-driver``, ``drivelab.load("drivelab-driver")``, ``drivelab export drivelab-driver``):
@@ -38,6 +39,8 @@ SUMS = "SHA256SUMS"
 DRIVER_FILES = ("tensors.safetensors", "state.json", CARD)
 # The metrics a card reports, in its order: MetaDrive's episode outcomes and how far the car got.
 CARD_METRICS = ("success_rate", "crash_rate", "out_of_road_rate", "route_completion")
+# ... and after them, when the evaluation has it: the mean episode cost (SafeMetaDrive, drivelab.envs.costs).
+COST_CARD_METRICS = ("cost",)
 
 
 def shipped_drivers() -> list[str]:
@@ -154,11 +157,15 @@ def format_card(card: dict) -> str:
              f"  observation {card.get('observation')} {tuple(card.get('observation_shape', ()))}"]
     evaluation = card.get("evaluation", {})
     if evaluation:
+        policies = evaluation.get("policies", {})
+        # the cost column when some policy has it; a policy without a metric shows "-" in its cell
+        metrics = CARD_METRICS + tuple(m for m in COST_CARD_METRICS
+                                       if any(m in result for result in policies.values()))
         lines.append(f"  evaluation  {evaluation.get('protocol')}")
-        header = "    {:<18}" + "{:>22}" * len(CARD_METRICS)
-        lines.append(header.format("policy", *CARD_METRICS) + "    (mean ± 95% CI of the mean)")
-        for who, result in evaluation.get("policies", {}).items():
-            cells = [f"{result[m]['mean']:.3f} ± {result[m]['ci95']:.3f}" for m in CARD_METRICS if m in result]
+        header = "    {:<18}" + "{:>22}" * len(metrics)
+        lines.append(header.format("policy", *metrics) + "    (mean ± 95% CI of the mean)")
+        for who, result in policies.items():
+            cells = [f"{result[m]['mean']:.3f} ± {result[m]['ci95']:.3f}" if m in result else "-" for m in metrics]
             lines.append(header.format(who, *cells))
     return "\n".join(lines)
 
@@ -172,11 +179,12 @@ def model_card(path: str | Path) -> str:
 
 
 def card_metrics(per_episode: dict[str, list[float]]) -> dict[str, dict[str, float]]:
-    """{metric: {mean, ci95}} of per-episode outcomes (95% CI of the mean, Student's t)."""
+    """{metric: {mean, ci95}} of per-episode outcomes (95% CI of the mean, Student's t): the card's
+    metrics that ``per_episode`` holds, the episode cost included when it does."""
     from drivelab.training.outputs.statistics import mean_and_ci95
 
     out = {}
-    for name in CARD_METRICS:
+    for name in CARD_METRICS + COST_CARD_METRICS:
         if name in per_episode:
             mean, half = mean_and_ci95(np.asarray(per_episode[name], float))
             out[name] = {"mean": round(float(mean), 4), "ci95": round(float(half), 4)}

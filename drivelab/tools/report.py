@@ -35,10 +35,13 @@ th { text-align: left; background: #f3f3f3; } td.num { text-align: right; font-v
 img, video { max-width: 100%; } pre { background: #f6f6f6; padding: 1em; overflow-x: auto; }
 h1 { margin-bottom: 0.2em; } .muted { color: #777; } section { margin-bottom: 3em; }
 """
-COLUMNS = [("return_mean", "return", False), ("length_mean", "length", False), ("success_rate", "success", True),
-           ("crash_rate", "crash", True), ("out_of_road_rate", "out of road", True),
-           ("timeout_rate", "timeout", True),
-           ("route_completion", "route completion", True), ("mean_abs_cte", "mean |CTE| (m)", False)]
+# The evaluation table's columns, as (summary key, label, format), each shown when some row has it:
+# rates as percentages, and for an env with a cost its mean episode cost and cost per step.
+COLUMNS = [("return_mean", "return", "{:.2f}"), ("length_mean", "length", "{:.2f}"),
+           ("success_rate", "success", "{:.1%}"), ("cost", "cost", "{:.2f}"), ("cost_rate", "cost/step", "{:.4f}"),
+           ("crash_rate", "crash", "{:.1%}"), ("out_of_road_rate", "out of road", "{:.1%}"),
+           ("timeout_rate", "timeout", "{:.1%}"),
+           ("route_completion", "route completion", "{:.1%}"), ("mean_abs_cte", "mean |CTE| (m)", "{:.2f}")]
 
 
 def _data_uri(path: Path, mime: str) -> str:
@@ -51,9 +54,9 @@ def _table(rows: list[tuple[str, dict[str, float]]]) -> str:
     body = ""
     for name, row in rows:
         cells = ""
-        for key, _, percent in columns:
+        for key, _, fmt in columns:
             value = row.get(key)
-            text = "–" if value is None else f"{100 * value:.1f}%" if percent else f"{value:.2f}"
+            text = "–" if value is None else fmt.format(value)
             if key == "return_mean" and value is not None:
                 text += f" ± {row['return_std']:.1f}"
             cells += f'<td class="num">{text}</td>'

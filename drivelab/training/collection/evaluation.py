@@ -46,6 +46,9 @@ class EvalResult:
     metrics: dict[str, np.ndarray] = field(default_factory=dict)  # driving metric -> (episodes,)
 
     def summary(self) -> dict[str, float]:
+        """Means over the episodes: return (with its std), length and each driving metric. An env
+        with a cost adds ``cost_rate``, the cost per step of all episodes together (total cost over
+        total steps, Safety Gym's CostRate), beside ``cost``, the mean episode cost."""
         out = {
             "episodes": int(len(self.returns)),
             "return_mean": float(np.mean(self.returns)),
@@ -53,6 +56,8 @@ class EvalResult:
             "length_mean": float(np.mean(self.lengths)),
         }
         out.update({name: float(np.mean(values)) for name, values in self.metrics.items()})
+        if "cost" in self.metrics:
+            out["cost_rate"] = float(np.sum(self.metrics["cost"]) / max(int(np.sum(self.lengths)), 1))
         return out
 
     @classmethod
@@ -221,14 +226,24 @@ def evaluate_policy(envs: VectorEnv, policy: torch.nn.Module, episodes: int, see
         policy.train(was_training)
 
 
-def new_best(summary: dict[str, float], metric: str, best: list[float] | None) -> list[float] | None:
+def new_best(summary: dict[str, float], metric: str, best: list[float] | None,
+             cost_limit: float | None = None) -> list[float] | None:
     """The score ``[metric, return_mean]`` of ``summary`` when it beats ``best`` (ties, frequent
     for rates over few episodes, go to the higher return), else None; None too when the env does
-    not report ``metric``."""
+    not report ``metric``.
+
+    With a ``cost_limit`` (``eval.cost_limit``) the score is ``[feasible, metric, -cost,
+    return_mean]``: an evaluation whose mean episode cost is within the limit beats any that is
+    not, then the metric decides, then the lower cost. An env without a cost counts as feasible.
+    A ``best`` scored by the other rule (the limit set or unset on ``--resume``) cannot be
+    compared: the first evaluation under the new rule replaces it."""
     if metric not in summary:
         return None
     score = [summary[metric], summary["return_mean"]]
-    if best is not None and score <= best:
+    if cost_limit is not None:
+        cost = summary.get("cost", 0.0)
+        score = [float(cost <= cost_limit), summary[metric], -cost, summary["return_mean"]]
+    if best is not None and len(best) == len(score) and score <= best:
         return None
     return score
 
@@ -256,7 +271,7 @@ def evaluation_round(envs: VectorEnv, env_cfg: EnvConfig, policy: torch.nn.Modul
     beats ``best`` and ``spec.video`` is on, (file, frame strip) of one episode filmed into
     ``video_path`` (else None)."""
     summary = evaluate_policy(envs, policy, spec.episodes, spec.seed, device)
-    if not spec.video or new_best(summary, spec.best_metric, best) is None:
+    if not spec.video or new_best(summary, spec.best_metric, best, spec.cost_limit) is None:
         return summary, None
     return summary, film_episode(env_cfg, policy, spec.seed, video_path, device)
 

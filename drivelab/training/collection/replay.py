@@ -6,7 +6,8 @@ The networks are in :mod:`drivelab.training.learning.offpolicy_nets`, the buffer
 :mod:`drivelab.training.collection.exploration`; the loops are in the algorithm files.
 
 Actions are stored in the policy's units, [-1, 1] per dimension; the agent's ``to_env`` maps
-them onto the env's Box bounds.
+them onto the env's Box bounds. With ``costs`` (SAC-Lagrangian) each step's ``info["cost"]`` is
+stored beside its reward.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from drivelab.training.learning.hyperparams import OffPolicyParams
 from drivelab.training.learning.offpolicy_nets import OffPolicyAgent
 from drivelab.training.learning.replay_buffer import ReplayBatch, ReplayBuffer
 from drivelab.training.outputs.checkpoint import Checkpoint
-from drivelab.training.outputs.episodes import stack_infos
+from drivelab.training.outputs.episodes import stack_infos, step_costs
 
 if TYPE_CHECKING:  # the collector calls the run's services; run/ sits above collection/
     from drivelab.training.run import Run
@@ -54,13 +55,14 @@ class ReplayCollector:
     """
 
     def __init__(self, env_cfg: EnvConfig, hp: OffPolicyParams, run: Run, seed: int,
-                 wrapper: Callable[[gym.Env], gym.Env] | None = None):
+                 wrapper: Callable[[gym.Env], gym.Env] | None = None, costs: bool = False):
         self.envs = make_vector_env(env_cfg, autoreset_mode=AutoresetMode.DISABLED, on_restart=run.note_env_restart,
                                     wrapper=wrapper)
         self.num_envs = self.envs.num_envs
         self.obs_space, self.act_space = self.envs.single_observation_space, self.envs.single_action_space
         self.buffer = ReplayBuffer(hp.buffer_size, self.obs_space, self.act_space, run.device, gamma=hp.gamma,
-                                   n_step=hp.n_step, num_envs=self.num_envs)
+                                   n_step=hp.n_step, num_envs=self.num_envs, costs=costs,
+                                   cost_gamma=getattr(hp, "cost_gamma", None))
         self.sample_rng = np.random.default_rng([seed, 1])
         self.hp, self.run, self.step_timeout = hp, run, env_cfg.step_timeout
         self.steps = run.step                 # env steps stored (run.step after this collector's last call)
@@ -75,16 +77,17 @@ class ReplayCollector:
     @classmethod
     def from_config(cls, cfg: TrainConfig, run: Run,
                     build_policy: Callable[[TrainConfig, gym.Space, gym.Space], OffPolicyAgent],
-                    exploration: Callable[..., Exploration]) -> ReplayCollector:
+                    exploration: Callable[..., Exploration], costs: bool = False) -> ReplayCollector:
         """The collector an off-policy config asks for: :class:`AsyncReplayCollector` with
         ``act_in_workers``, whose env workers build their actor with ``build_policy(cfg,
         obs_space, act_space)`` and their one-env exploration with ``exploration(cfg.algo_params,
-        1, act_dim, seed)``; :class:`SyncReplayCollector` otherwise."""
+        1, act_dim, seed)``; :class:`SyncReplayCollector` otherwise. ``costs``: store each step's
+        cost too (discounted by ``cfg.algo_params.cost_gamma`` in n-step sums)."""
         hp: OffPolicyParams = cfg.algo_params
         if not hp.act_in_workers:
-            return SyncReplayCollector(cfg.env, hp, run, seed=cfg.seed)
+            return SyncReplayCollector(cfg.env, hp, run, seed=cfg.seed, costs=costs)
         return AsyncReplayCollector(cfg.env, hp, run, seed=cfg.seed, worker_agent=functools.partial(build_policy, cfg),
-                                    worker_exploration=functools.partial(exploration, hp))
+                                    worker_exploration=functools.partial(exploration, hp), costs=costs)
 
     def start(self, checkpoint: Checkpoint | None, exploration: Exploration) -> None:
         """Reset every env; on resume, first load the buffer, the sampling RNG, the update counts,
@@ -174,7 +177,9 @@ class SyncReplayCollector(ReplayCollector):
                 agent.to_env(torch.as_tensor(action, dtype=torch.float32)))
         check_finite_step(next_obs, reward, self.steps)
         done = terminated | truncated
-        self.buffer.add(self.obs, action, reward, next_obs, terminated, truncated)
+        # with DISABLED autoreset the info is the step's own, an episode's last step included
+        costs = step_costs(info, done) if self.buffer.costs is not None else None
+        self.buffer.add(self.obs, action, reward, next_obs, terminated, truncated, costs)
         self.run.episodes.step(reward, done, info)
         self.obs = next_obs
         self._fresh[:] = False
@@ -203,9 +208,9 @@ class AsyncReplayCollector(ReplayCollector):
 
     def __init__(self, env_cfg: EnvConfig, hp: OffPolicyParams, run: Run, seed: int,
                  worker_agent: Callable[[gym.Space, gym.Space], OffPolicyAgent],
-                 worker_exploration: Callable[[int, int, int], Exploration]):
+                 worker_exploration: Callable[[int, int, int], Exploration], costs: bool = False):
         wrapper = functools.partial(ActorInWorker, make_agent=worker_agent, make_exploration=worker_exploration)
-        super().__init__(env_cfg, hp, run, seed, wrapper=wrapper)
+        super().__init__(env_cfg, hp, run, seed, wrapper=wrapper, costs=costs)
         self._in_flight: deque[int] = deque()   # self.updates when each chunk in flight was sent
         self._sent_steps = self.steps           # env steps stored or in flight
 
@@ -224,8 +229,9 @@ class AsyncReplayCollector(ReplayCollector):
         length = min(self.hp.chunk_steps, -(-(self.run.cfg.steps - self._sent_steps) // self.num_envs))
         if length <= 0:
             return
+        # the workers only act: the critics (and a cost critic) stay here
         weights = {name: value.detach().cpu().numpy() for name, value in agent.state_dict().items()
-                   if not name.startswith("critic.")}
+                   if not name.startswith(("critic.", "cost_critic."))}
         heat_up = self._sent_steps < self.hp.learning_starts
         self.envs.call_queue("play", weights, length, self._sent_steps, self.num_envs, heat_up, steps=length)
         self._in_flight.append(self.updates)
@@ -254,7 +260,8 @@ class AsyncReplayCollector(ReplayCollector):
         for env in range(self.num_envs):
             check_finite_step(next_obs[:, env][None], rewards[:, env][None], self.steps, first_env=env)
         flat = lambda x: x.reshape(-1, *x.shape[2:])  # noqa: E731
-        self.buffer.add(flat(obs), flat(actions), flat(rewards), flat(next_obs), flat(terminated), flat(truncated))
+        costs = flat(np.stack([chunk.costs for chunk in chunks], axis=1)) if self.buffer.costs is not None else None
+        self.buffer.add(flat(obs), flat(actions), flat(rewards), flat(next_obs), flat(terminated), flat(truncated), costs)
         done = terminated | truncated
         for t in range(len(rewards)):
             info = stack_infos([chunk.episode_info.get(t, {}) for chunk in chunks]) if done[t].any() else {}

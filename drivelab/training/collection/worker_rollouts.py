@@ -11,13 +11,15 @@ measures both ways).
 Here each env worker holds the policy's network. Once per rollout the trainer sends the current
 weights (``collect``); the worker plays T steps on its own (sampling from its own generator,
 seeded by the env's reset seed, so a rollout does not depend on timing) and returns what the
-rollout buffer needs, including the values for GAE. Episodes end as in ``AutoresetMode.SAME_STEP``
+rollout buffer needs, including the values for GAE (with a cost critic, also each step's cost and
+V_c for the cost's GAE). Episodes end as in ``AutoresetMode.SAME_STEP``
 (:mod:`drivelab.training.collection.rollout`): a terminated step bootstraps nothing, a truncated one from
 V(final observation), computed in the worker with the same weights.
 
 The off-policy algorithms use :class:`ActorInWorker`: a worker plays a chunk of steps with a copy
 of the actor and its exploration, and returns the transitions (s, a, r, s', terminated,
-truncated) for the replay buffer, while the learner updates (:mod:`drivelab.training.collection.replay`).
+truncated, and the step's cost) for the replay buffer, while the learner updates
+(:mod:`drivelab.training.collection.replay`).
 
 Evaluation uses :class:`EpisodesInWorker`: a worker plays whole evaluation episodes with a copy of
 the policy, each reset with its own seed, and returns each episode's return, length and metrics
@@ -54,6 +56,11 @@ class WorkerRollout(NamedTuple):
     final_values: np.ndarray  # (T,) V(final observation) where a time limit cut the episode, else 0
     last_value: float         # V of the observation after step T (where the next rollout starts)
     episode_info: dict[int, dict[str, float]]  # step t -> driving metrics of the episode that ended there
+    # with a cost critic (PPO-Lagrangian), the same for the cost; None otherwise
+    costs: np.ndarray | None = None              # (T,) the step's info["cost"]
+    cost_values: np.ndarray | None = None        # (T,) V_c(s)
+    final_cost_values: np.ndarray | None = None  # (T,) V_c(final observation) where a time limit cut the episode
+    last_cost_value: float | None = None         # V_c of the observation after step T
 
 
 class PolicyInWorker(gym.Wrapper):
@@ -85,30 +92,47 @@ class PolicyInWorker(gym.Wrapper):
             self.policy = self.make_policy(self.observation_space, self.action_space)
         self.policy.load_state_dict({name: torch.from_numpy(value) for name, value in weights.items()})
         discrete = self.policy.discrete
+        critics = 1 if self.policy.cost_critic is None else 2  # column 0: V, column 1: V_c
         obs_buf = np.zeros((num_steps, *self.observation_space.shape), self.observation_space.dtype)
         actions = np.zeros((num_steps,) if discrete else (num_steps, *self.action_space.shape),
                            np.int64 if discrete else np.float32)
         # policy outputs stay tensors (row writes, no per-step .item()); numpy once at the end
-        log_probs, values, final_values = (torch.zeros(num_steps) for _ in range(3))
-        rewards = np.zeros(num_steps, np.float32)
+        log_probs = torch.zeros(num_steps)
+        values, final_values = torch.zeros(num_steps, critics), torch.zeros(num_steps, critics)
+        rewards, costs = np.zeros(num_steps, np.float32), np.zeros(num_steps, np.float32)
         terminated, truncated = np.zeros(num_steps, bool), np.zeros(num_steps, bool)
         episode_info = {}
         for t in range(num_steps):
             obs_buf[t] = self.obs
             dist, value = self.policy.distribution_and_value(torch.as_tensor(self.obs).unsqueeze(0))
             action = sample(dist, self.generator)
-            actions[t], log_probs[t], values[t] = action[0].numpy(), dist.log_prob(action)[0], value[0]
+            actions[t], log_probs[t], values[t, 0] = action[0].numpy(), dist.log_prob(action)[0], value[0]
+            if critics == 2:
+                values[t, 1] = self.policy.cost_value(torch.as_tensor(self.obs).unsqueeze(0))[0]
             obs, rewards[t], terminated[t], truncated[t], info = self.env.step(self.policy.to_env(action)[0])
             check_finite_step(obs[None], rewards[t:t + 1], None)  # before the policy acts on obs
+            costs[t] = info.get("cost", 0.0)  # the step's own info: this wrapper resets the env itself
             if terminated[t] or truncated[t]:
                 if truncated[t] and not terminated[t]:  # a time limit: the state had a future
-                    final_values[t] = self.policy.value(torch.as_tensor(obs).unsqueeze(0))[0]
+                    final_values[t] = self._values(obs)
                 episode_info[t] = {key: float(x) for key, x in info.items() if is_episode_metric(key)}
                 obs, _ = self.env.reset()
             self.obs = obs
-        last_value = self.policy.value(torch.as_tensor(self.obs).unsqueeze(0)).item()
-        return WorkerRollout(obs_buf, actions, log_probs.numpy(), values.numpy(), rewards, terminated, truncated,
-                             final_values.numpy(), last_value, episode_info)
+        last = self._values(self.obs).tolist()
+        values, final_values = values.numpy(), final_values.numpy()
+        rollout = WorkerRollout(obs_buf, actions, log_probs.numpy(), values[:, 0], rewards, terminated, truncated,
+                                final_values[:, 0], last[0], episode_info)
+        if critics == 1:
+            return rollout
+        return rollout._replace(costs=costs, cost_values=values[:, 1], final_cost_values=final_values[:, 1],
+                                last_cost_value=last[1])
+
+    def _values(self, obs: np.ndarray) -> torch.Tensor:
+        """(critics,) V(obs), and V_c(obs) with a cost critic."""
+        obs = torch.as_tensor(obs).unsqueeze(0)
+        if self.policy.cost_critic is None:
+            return self.policy.value(obs)
+        return torch.cat([self.policy.value(obs), self.policy.cost_value(obs)])
 
 
 class WorkerTransitions(NamedTuple):
@@ -122,6 +146,7 @@ class WorkerTransitions(NamedTuple):
     terminated: np.ndarray    # (T,) bool
     truncated: np.ndarray     # (T,) bool
     episode_info: dict[int, dict[str, float]]  # step t -> driving metrics of the episode that ended there
+    costs: np.ndarray | None = None  # (T,) the step's info["cost"] (0 where the env reports none)
 
 
 class ActorInWorker(gym.Wrapper):
@@ -167,7 +192,7 @@ class ActorInWorker(gym.Wrapper):
         obs_buf = np.zeros((num_steps, *self.observation_space.shape), self.observation_space.dtype)
         next_obs_buf = np.zeros_like(obs_buf)
         actions = np.zeros((num_steps, *self.action_space.shape), np.float32)
-        rewards = np.zeros(num_steps, np.float32)
+        rewards, costs = np.zeros(num_steps, np.float32), np.zeros(num_steps, np.float32)
         terminated, truncated = np.zeros(num_steps, bool), np.zeros(num_steps, bool)
         episode_info = {}
         for t in range(num_steps):
@@ -180,12 +205,13 @@ class ActorInWorker(gym.Wrapper):
                 self.agent.to_env(torch.as_tensor(actions[t]).unsqueeze(0))[0])
             check_finite_step(obs[None], rewards[t:t + 1], None)
             next_obs_buf[t] = obs
+            costs[t] = info.get("cost", 0.0)  # the step's own info: this wrapper resets the env itself
             if terminated[t] or truncated[t]:
                 episode_info[t] = {key: float(x) for key, x in info.items() if is_episode_metric(key)}
                 self.exploration.end_episodes(np.ones(1, bool))
                 obs, _ = self.env.reset()
             self.obs = obs
-        return WorkerTransitions(obs_buf, actions, rewards, next_obs_buf, terminated, truncated, episode_info)
+        return WorkerTransitions(obs_buf, actions, rewards, next_obs_buf, terminated, truncated, episode_info, costs)
 
 
 class WorkerEpisode(NamedTuple):

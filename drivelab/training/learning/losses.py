@@ -43,6 +43,22 @@ def value_loss(values: torch.Tensor, old_values: torch.Tensor, returns: torch.Te
     return 0.5 * loss.mean()
 
 
+def standardize(x: torch.Tensor) -> torch.Tensor:
+    """(x - mean) / (std + 1e-8) over a (B,) minibatch; a constant minibatch (no cost anywhere) gives zeros."""
+    return (x - x.mean()) / (x.std() + 1e-8)
+
+
+def lagrangian_advantages(advantages: torch.Tensor, cost_advantages: torch.Tensor, lam: float) -> torch.Tensor:
+    """The advantage of the Lagrangian r - lambda * c, divided by 1 + lambda:
+    (A_r - lambda * A_c) / (1 + lambda), all (B,).
+
+    Maximising it with lambda >= 0 trades return for cost (Ray, Achiam & Amodei 2019, PPO-Lagrangian);
+    the division keeps the size of the policy step the same whatever lambda grows to (as in their
+    code and OmniSafe's PPOLag), so the clip range and learning rate keep their meaning.
+    """
+    return (advantages - lam * cost_advantages) / (1 + lam)
+
+
 def approx_kl(log_ratio: torch.Tensor) -> torch.Tensor:
     """KL(pi_old || pi_theta) estimated by E[(rho - 1) - log rho] (Schulman 2020, "k3"):
     unbiased and never negative."""

@@ -175,11 +175,16 @@ class OffPolicyAgent(nn.Module):
 
     Vector observations are flattened (each MLP learns its own features); uint8 images share
     one CNN, trained by the critics (see the module docstring).
+
+    ``cost_critics=1`` adds ``cost_critic``, one Q-network of the same shape that estimates the
+    discounted cost Q_c(s, a) (SAC-Lagrangian). It reads the features detached, like the actor:
+    the encoder stays the reward critics'. Built after the others, so an agent without it draws
+    the same initial weights as before.
     """
 
     def __init__(self, obs_space: gym.Space, act_space: gym.Space, hidden: Sequence[int], act: str,
                  stochastic: bool, critics: int = 2, critic_layer_norm: bool = False,
-                 critic_batch_norm: bool = False):
+                 critic_batch_norm: bool = False, cost_critics: int = 0):
         super().__init__()
         if not (isinstance(act_space, gym.spaces.Box) and len(act_space.shape) == 1):
             raise DrivelabError(f"DDPG, TD3 and SAC need a continuous 1-D Box action space, not {act_space} "
@@ -196,6 +201,9 @@ class OffPolicyAgent(nn.Module):
         self.critic = Critics(feature_dim, act_dim, hidden, act, ensemble=critics, layer_norm=critic_layer_norm,
                               batch_norm=critic_batch_norm)
         self.stochastic = stochastic
+        if cost_critics:
+            self.cost_critic = Critics(feature_dim, act_dim, hidden, act, ensemble=cost_critics,
+                                       layer_norm=critic_layer_norm)
         # [-1, 1] -> [low, high]
         low, high = (torch.tensor(b, dtype=torch.float32) for b in (act_space.low, act_space.high))
         self.register_buffer("action_scale", (high - low) / 2)
@@ -203,8 +211,12 @@ class OffPolicyAgent(nn.Module):
 
     def compile_networks(self) -> None:
         """torch.compile the forward passes (state_dict keys stay the same, so checkpoints too)."""
-        for module in (self.encoder, self.actor, self.critic):
+        for module in (self.encoder, self.actor, self.critic, *([self.cost_critic] if self.has_cost_critic else [])):
             module.forward = torch.compile(module.forward)
+
+    @property
+    def has_cost_critic(self) -> bool:
+        return hasattr(self, "cost_critic")
 
     def features(self, obs: torch.Tensor) -> torch.Tensor:
         return self.encoder(obs if obs.dtype == torch.uint8 else obs.float())

@@ -2,8 +2,9 @@
 
 :class:`Policy` turns encoder features into a ``torch.distributions`` object: ``Categorical`` for
 ``Discrete`` actions and a diagonal Gaussian (state-independent log-std, as in PPO/REINFORCE
-baselines) for ``Box`` actions; :class:`ActorCritic` adds V(s). :func:`limit_log_std` applies the
-falling upper bound of ``log_std_final``.
+baselines) for ``Box`` actions; :class:`ActorCritic` adds V(s), and for the constrained algorithms
+(PPO-Lagrangian) a cost critic V_c(s). :func:`limit_log_std` applies the falling upper bound of
+``log_std_final``.
 """
 
 from __future__ import annotations
@@ -120,18 +121,20 @@ class ActorCritic(nn.Module):
     policy; Andrychowicz et al. 2021 found separate networks better on continuous control).
     With ``obs_norm`` both see observations standardised by running statistics that are saved
     with the weights (vector observations only; images are scaled to [0, 1] by the CNN).
+    With ``cost_critic`` a third network of the critic's shape estimates the expected discounted
+    cost V_c(s) (PPO-Lagrangian); acting, evaluation and export never use it.
     """
 
     def __init__(self, obs_space: gym.Space, act_space: gym.Space, hidden: Sequence[int] = (64, 64),
-                 act: str = "tanh", log_std_init: float = 0.0, obs_norm: bool = False, critic: bool = True):
+                 act: str = "tanh", log_std_init: float = 0.0, obs_norm: bool = False, critic: bool = True,
+                 cost_critic: bool = False):
         super().__init__()
         self.obs_rms = RunningMeanStd(obs_space.shape) if obs_norm and not is_image_space(obs_space) else None
         self.actor = Policy(obs_space, act_space, hidden, act, log_std_init)
         self.discrete = self.actor.discrete
-        self.critic = None
-        if critic:
-            encoder = make_encoder(obs_space, hidden, act)
-            self.critic = nn.Sequential(encoder, layer_init(nn.Linear(encoder.out_dim, 1), gain=1.0))
+        self.critic = _value_net(obs_space, hidden, act) if critic else None
+        # built after the others, so the actor's and critic's initial weights do not depend on it
+        self.cost_critic = _value_net(obs_space, hidden, act) if cost_critic else None
 
     def prepare(self, obs: torch.Tensor) -> torch.Tensor:
         return self.obs_rms.normalize(obs.float()) if self.obs_rms is not None else obs
@@ -142,6 +145,10 @@ class ActorCritic(nn.Module):
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         """(B,) state values."""
         return self.critic(self.prepare(obs)).squeeze(-1)
+
+    def cost_value(self, obs: torch.Tensor) -> torch.Tensor:
+        """(B,) cost values V_c(s) (needs ``cost_critic``)."""
+        return self.cost_critic(self.prepare(obs)).squeeze(-1)
 
     def distribution_and_value(self, obs: torch.Tensor) -> tuple[Distribution, torch.Tensor]:
         """pi(.|obs) and the (B,) values, normalising the observations once (the rollout's step)."""
@@ -157,3 +164,9 @@ class ActorCritic(nn.Module):
 
     def deterministic_action(self, obs: torch.Tensor) -> torch.Tensor:
         return self.actor.deterministic_action(self.prepare(obs))
+
+
+def _value_net(obs_space: gym.Space, hidden: Sequence[int], act: str) -> nn.Module:
+    """An encoder and a linear head: (B, *obs_shape) -> (B, 1)."""
+    encoder = make_encoder(obs_space, hidden, act)
+    return nn.Sequential(encoder, layer_init(nn.Linear(encoder.out_dim, 1), gain=1.0))

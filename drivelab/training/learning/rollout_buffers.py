@@ -21,13 +21,18 @@ class RolloutBatch(NamedTuple):
     values: torch.Tensor      # (B,) V_old(s)
     advantages: torch.Tensor  # (B,)
     returns: torch.Tensor     # (B,) critic targets (advantages + values)
+    # the same for the cost, with a cost critic (PPO-Lagrangian; None otherwise)
+    cost_values: torch.Tensor | None = None      # (B,) V_c,old(s)
+    cost_advantages: torch.Tensor | None = None  # (B,) GAE of the costs
+    cost_returns: torch.Tensor | None = None     # (B,) cost critic targets
 
 
 class RolloutBuffer:
-    """Preallocated (T, N, ...) storage, written in place every step."""
+    """Preallocated (T, N, ...) storage, written in place every step. With ``costs`` it also keeps
+    each step's cost, V_c(s_t) and V_c(s_{t+1}), for the cost's own GAE (PPO-Lagrangian)."""
 
     def __init__(self, num_steps: int, num_envs: int, obs_space: gym.Space, act_space: gym.Space,
-                 device: torch.device):
+                 device: torch.device, costs: bool = False):
         discrete = isinstance(act_space, gym.spaces.Discrete)
         obs_dtype = torch.uint8 if obs_space.dtype == np.uint8 else torch.float32
         shape = (num_steps, num_envs)
@@ -41,6 +46,9 @@ class RolloutBuffer:
         self.next_values = np.zeros(shape, np.float32)
         self.terminated = np.zeros(shape, bool)
         self.dones = np.zeros(shape, bool)
+        self.costs = np.zeros(shape, np.float32) if costs else None
+        self.cost_values = torch.zeros(shape, device=device) if costs else None
+        self.cost_next_values = np.zeros(shape, np.float32) if costs else None
 
     def write_env(self, env: int, rollout) -> None:
         """Column ``env`` from a rollout that an env worker played (a
@@ -54,16 +62,28 @@ class RolloutBuffer:
         self.terminated[:, env] = rollout.terminated
         self.dones[:, env] = rollout.terminated | rollout.truncated
         self.next_values[:, env] = rollout.final_values
+        if self.costs is not None:
+            self.costs[:, env] = rollout.costs
+            self.cost_values[:, env] = torch.as_tensor(rollout.cost_values, device=device)
+            self.cost_next_values[:, env] = rollout.final_cost_values
 
-    def batch(self, gamma: float, gae_lambda: float) -> RolloutBatch:
+    def batch(self, gamma: float, gae_lambda: float, cost_gamma: float | None = None) -> RolloutBatch:
+        """The flat batch with GAE(``gamma``, ``gae_lambda``) advantages; with costs, also the
+        cost's GAE(``cost_gamma``, ``gae_lambda``): the same estimator with c_t for r_t and V_c for V."""
         advantages, returns = gae(self.rewards, self.values.cpu().numpy(), self.next_values, self.terminated,
                                   self.dones, gamma, gae_lambda)
         device = self.values.device
-        return RolloutBatch(
+        flat = lambda x: torch.as_tensor(x, device=device).flatten()  # (T, N) -> (B,)
+        batch = RolloutBatch(
             obs=self.obs.flatten(0, 1), actions=self.actions.flatten(0, 1), log_probs=self.log_probs.flatten(),
-            values=self.values.flatten(), advantages=torch.as_tensor(advantages, device=device).flatten(),
-            returns=torch.as_tensor(returns, device=device).flatten(),
+            values=self.values.flatten(), advantages=flat(advantages), returns=flat(returns),
         )
+        if self.costs is None:
+            return batch
+        cost_advantages, cost_returns = gae(self.costs, self.cost_values.cpu().numpy(), self.cost_next_values,
+                                            self.terminated, self.dones, cost_gamma, gae_lambda)
+        return batch._replace(cost_values=self.cost_values.flatten(), cost_advantages=flat(cost_advantages),
+                              cost_returns=flat(cost_returns))
 
 
 class EpisodeStorage:

@@ -20,7 +20,8 @@ import yaml
 from drivelab.errors import DrivelabError
 from drivelab.training.outputs.statistics import mean_and_band, rolling_mean
 
-# panel title -> metric names, the first one a run logged is drawn
+# panel title -> metric names, the first one a run logged is drawn (a panel no run logged is left out:
+# the cost panels appear for envs with a cost, the multiplier for the constrained algorithms)
 DEFAULT_PANELS = {
     "episode return": ("episode/return",),
     "entropy": ("loss/entropy", "charts/entropy"),
@@ -28,7 +29,10 @@ DEFAULT_PANELS = {
     "policy / actor loss": ("loss/policy", "loss/actor"),
     "success rate": ("episode/success_rate",),
     "route completion": ("episode/route_completion",),
+    "episode cost": ("episode/cost",),
+    "Lagrange multiplier": ("charts/lagrange_multiplier",),
     "evaluation return": ("eval/return_mean",),
+    "evaluation cost": ("eval/cost",),
 }
 
 
@@ -89,6 +93,12 @@ def _flat(data: dict, prefix: str = "") -> dict[str, object]:
     return out
 
 
+def default_panels(logged: list[dict[str, object]]) -> dict[str, tuple[str, ...]]:
+    """The :data:`DEFAULT_PANELS` that some run logged a metric of (``logged``: each run's metrics
+    by name, as :func:`read_metrics` returns them)."""
+    return {title: names for title, names in DEFAULT_PANELS.items() if any(n in run for run in logged for n in names)}
+
+
 def last_metrics(run_dir: str | Path) -> dict[str, float]:
     """The last logged value of each metric in ``RUN/metrics.csv`` (a run's final metrics)."""
     return {name: float(values[-1]) for name, (_, _, values) in read_metrics(run_dir).items()}
@@ -109,8 +119,7 @@ def plot_runs(run_dirs: list[str | Path], out: str | Path, metrics: list[str] | 
     if metrics:
         panels = {name: (name,) for name in metrics}
     else:
-        panels = {title: names for title, names in DEFAULT_PANELS.items()
-                  if any(n in data[run] for run in runs for n in names)}
+        panels = default_panels([data[run] for run in runs])
     if not panels:
         raise DrivelabError(f"none of the metrics to plot were logged by {', '.join(map(str, runs))}")
     cols = min(3, len(panels))

@@ -2,8 +2,9 @@
 logged rows (``metrics.csv``, TensorBoard, MLflow through :class:`~drivelab.training.outputs.tracking.Tracker`).
 
 What one log holds: the means of the finished training episodes (``episode/*``), the means of
-the update metrics recorded since the last log (``loss/*``, ``charts/*``), and the ``perf/*``
-numbers (see :mod:`drivelab.training.run`).
+the update metrics recorded since the last log (``loss/*``, ``charts/*``), for an env with a cost
+the cost paid since the run began (``charts/cumulative_cost``, ``charts/cost_rate``), and the
+``perf/*`` numbers (see :mod:`drivelab.training.run`).
 """
 
 from __future__ import annotations
@@ -73,10 +74,20 @@ class RunMetrics:
         """Log ``metrics`` with the episode means and the perf/* numbers at ``step``; returns all
         that was logged."""
         elapsed = time.perf_counter() - self.start_time
-        logged = {**self.episodes.means(), **metrics, **self.timing.fractions(),
-                  "perf/steps_per_s": (step - self._start_step) / max(elapsed, 1e-9)}
+        logged = {**self.episodes.means(), **self.cost_totals(step), **metrics,
+                  **self.timing.fractions(), "perf/steps_per_s": (step - self._start_step) / max(elapsed, 1e-9)}
         self.tracker.log(step, logged)
         return logged
+
+    def cost_totals(self, step: int) -> dict[str, float]:
+        """For an env with a cost, the cost paid since the run began, the safe-exploration measure
+        of Safety Gym (Ray, Achiam & Amodei 2019): ``charts/cumulative_cost``, summed over the
+        finished training episodes, and ``charts/cost_rate``, that sum per env step trained
+        (steps of episodes still running count, their cost not yet). {} for an env without cost."""
+        if self.episodes.cost_episodes == 0:
+            return {}
+        total = self.episodes.cost_total
+        return {"charts/cumulative_cost": total, "charts/cost_rate": total / max(step, 1)}
 
     def advance(self, step: int) -> None:
         """Move the progress bar to ``step``. It is redrawn at most twice a second, from the step

@@ -3,7 +3,8 @@
 Every ``eval.every`` steps the policy plays ``eval.episodes`` deterministic episodes on the
 evaluation env (:func:`eval_env_config`), logged as ``eval/*``. A new best ``eval.best_metric``
 (ties go to the higher return) is kept as ``checkpoints/best`` with its ``eval.json`` and, with
-``eval.video``, one filmed episode ``RUN/videos/step_<N>.mp4``.
+``eval.video``, one filmed episode ``RUN/videos/step_<N>.mp4``. With ``eval.cost_limit``, an
+evaluation whose mean episode cost is within the limit beats any that is not (``new_best``).
 
 Both backends play :func:`~drivelab.training.collection.evaluation.evaluation_round` and finish in
 :meth:`RunEvaluation._finish`. ``local``: the trainer pauses and plays on its own envs. ``ray``:
@@ -44,7 +45,7 @@ class RunEvaluation:
                  on_result: Callable[[int, dict[str, float]], None] | None = None):
         self.cfg, self.dir, self.tracker, self.device = cfg, run_dir, tracker, device
         self.env_cfg = eval_env_config(cfg)
-        self.best = best                 # [best_metric, return_mean] of checkpoints/best
+        self.best = best                 # the score of checkpoints/best (evaluation.new_best)
         self._save, self._on_restart, self._on_result = save, on_restart, on_result
         self._envs = None                # local: the evaluation envs, built at the first evaluation
         self._actor = None               # ray: the actor ...
@@ -102,7 +103,7 @@ class RunEvaluation:
         """Log ``eval/*`` at ``step``; on a new best, ``keep()`` makes ``checkpoints/best``, which
         gets the summary as ``eval.json``, and the filmed episode is logged."""
         self.tracker.log(step, {f"eval/{k}": v for k, v in summary.items() if k != "episodes"})
-        score = new_best(summary, self.cfg.eval.best_metric, self.best)
+        score = new_best(summary, self.cfg.eval.best_metric, self.best, self.cfg.eval.cost_limit)
         if score is not None:
             self.best = score
             (keep() / "eval.json").write_text(json.dumps({"step": step, **summary}, indent=1))
