@@ -243,6 +243,7 @@ class EpisodesInWorker(gym.Wrapper):
         """Take the pickled policy (``act(obs, deterministic)``, ``to_env(action)``) and the seeds
         of the episodes to play; any episode in progress is dropped."""
         torch.set_num_threads(1)  # one core per worker: the workers share the machine
+        # bytes this run pickled a moment ago in its own process (play), never read from a file
         self.policy, self.deterministic = pickle.loads(policy), deterministic
         self.seeds, self.obs = deque(seeds), None
 
