@@ -1,10 +1,11 @@
-"""Multi-agent MetaDrive with IPPO, over scenes and seeds: one table and one PNG. Not a test.
+"""Multi-agent MetaDrive with IPPO or MAPPO, over scenes and seeds: one table and one PNG. Not a test.
 
-    python benchmarks/multiagent.py --scenes Intersection Roundabout Tollgate Bottleneck --seeds 0 1 2 \\
-        --steps 250000 --runs runs/ma --out benchmarks/results/multiagent.json
+    python benchmarks/multiagent.py --config ma_intersection --scenes Intersection Roundabout Tollgate Bottleneck \\
+        --seeds 0 1 2 --steps 250000 --runs runs/ma        # writes benchmarks/results/ma_intersection.json + .png
 
-For each scene and seed: train ``ma_intersection.yaml`` on the scene (RUNS/SCENE/seed_N; an
-interrupted run resumes, a finished one is kept) for ``--steps`` env steps, then report
+For each scene and seed: train ``--config`` (``ma_intersection``: IPPO, or ``ma_intersection_mappo``)
+on the scene (RUNS/CONFIG/SCENE/seed_N; an interrupted run resumes, a finished one is kept) for
+``--steps`` env steps, then report
 
 * CoPO's measure: the best training success rate (``episode/success_rate``, a mean over the last
   ``stats_window`` cars' episodes, at its best log point; CoPO reports the best of its training);
@@ -34,7 +35,7 @@ from drivelab.api import evaluate_checkpoint
 from drivelab.training.outputs.plots import read_metrics
 from drivelab.training.outputs.statistics import mean_and_ci95
 
-CONFIG = Path(__file__).resolve().parent.parent / "drivelab" / "configs" / "ma_intersection.yaml"
+CONFIGS = Path(__file__).resolve().parent.parent / "drivelab" / "configs"
 # decisionforce/CoPO, benchmarks/MetaDrive-0.2.5/README.md: best training success, 1M env steps
 COPO_PUBLISHED = {"IPPO": {"Intersection": 0.719, "Roundabout": 0.664, "Bottleneck": 0.240, "Tollgate": 0.044,
                            "ParkingLot": 0.170, "PGMap": 0.818},
@@ -111,22 +112,25 @@ def plot(scenes: dict, out: Path) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", default="ma_intersection", help="ma_intersection (IPPO) or ma_intersection_mappo")
     parser.add_argument("--scenes", nargs="+", default=["Intersection", "Roundabout", "Tollgate", "Bottleneck"])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--steps", type=int, default=250_000, help="env steps of training per run")
     parser.add_argument("--episodes", type=int, default=10, help="scene episodes of each evaluation")
     parser.add_argument("--other-scene", default="Roundabout", help="a scene the Intersection runs never drove")
     parser.add_argument("--runs", type=Path, default=Path("runs/ma"))
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/multiagent.json"))
+    parser.add_argument("--out", type=Path, default=None, help="default: benchmarks/results/CONFIG.json")
     args = parser.parse_args()
+    config = CONFIGS / f"{args.config}.yaml"
+    args.out = args.out or Path("benchmarks/results") / f"{args.config}.json"
     gauge_before = cpu_gauge_ms()
     scenes = {}
     for scene in args.scenes:
         seeds = {}
         for seed in args.seeds:
-            run_dir = args.runs / scene / f"seed_{seed}"
+            run_dir = args.runs / args.config / scene / f"seed_{seed}"
             try:
-                trained = train_seed(str(CONFIG), seed, run_dir, {"env.id": scene_id(scene), "steps": args.steps})
+                trained = train_seed(str(config), seed, run_dir, {"env.id": scene_id(scene), "steps": args.steps})
             except KeyboardInterrupt:
                 raise SystemExit(f"interrupted; the same command resumes {scene} seed {seed} in {run_dir}") from None
             row = {**trained, "steps_per_s": trained["steps"] / (60 * trained["minutes"]),
@@ -141,8 +145,8 @@ def main() -> int:
         scenes[scene] = {"seeds": seeds, "summary": summarise(list(seeds.values()),
                                                               ("best_training_success", *EVAL_KEYS, "steps_per_s")),
                          "copo_published": {name: table.get(scene) for name, table in COPO_PUBLISHED.items()}}
-    result = {"benchmark": "multiagent-ippo", **provenance(), "cpu_gauge_ms": [gauge_before, cpu_gauge_ms()],
-              "config": str(CONFIG.relative_to(CONFIG.parent.parent.parent)), "steps": args.steps,
+    result = {"benchmark": f"multiagent-{args.config}", **provenance(), "cpu_gauge_ms": [gauge_before, cpu_gauge_ms()],
+              "config": str(config.relative_to(CONFIGS.parent.parent)), "steps": args.steps,
               "protocol": "best training success over the cars' episodes (CoPO's measure), and deterministic "
                           f"evaluation of the final policy on {args.episodes} scene episodes (seeds 0..N-1)",
               "scenes": scenes}

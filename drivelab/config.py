@@ -514,7 +514,7 @@ def _check_agents(cfg: TrainConfig) -> None:
         return  # an unknown id is said, with close matches, where the env is built
     scene = is_multiagent(cfg.env.id)
     if scene != getattr(cfg.algo_params, "multiagent", False):
-        which = "a multi-agent scene: train it with ippo" if scene else "a single-agent env"
+        which = "a multi-agent scene: train it with ippo or mappo" if scene else "a single-agent env"
         raise DrivelabError(f"config field 'algo': {cfg.algo} cannot train on '{cfg.env.id}', {which}")
     if scene and cfg.eval.every:
         raise DrivelabError("config field 'eval.every': multi-agent runs log episode/* over the cars' episodes "

@@ -208,6 +208,8 @@ CASES = {
     # multi-agent: four cars of MetaDrive's Intersection in two scene processes
     "ippo": {"env": {"id": "MultiAgentIntersection-v0", "num_envs": 2, "kwargs": {"num_agents": 4, "horizon": 60}},
              "steps": 192, "ippo": {"num_steps": 32, "hidden": [32, 32]}, "eval": {"every": 0}},
+    "mappo": {"env": {"id": "MultiAgentIntersection-v0", "num_envs": 2, "kwargs": {"num_agents": 4, "horizon": 60}},
+              "steps": 192, "mappo": {"num_steps": 32, "hidden": [32, 32]}, "eval": {"every": 0}},
 }
 
 

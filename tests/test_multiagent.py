@@ -13,7 +13,7 @@ from pettingzoo.test import parallel_api_test
 
 from drivelab.cli import main
 from drivelab.envs.multiagent import AgentSlots, MultiAgentDrive
-from drivelab.training.collection.agents import agent_advantages
+from drivelab.training.collection.agents import agent_advantages, mean_field
 from drivelab.training.outputs.checkpoint import load_checkpoint
 from flaky_env import importable_env
 from processes import run_drivelab
@@ -55,6 +55,8 @@ def test_slots_keep_each_agent_aligned_across_crashes_arrivals_and_respawns():
     np.testing.assert_array_equal(info["agent_cost"], [1, 0])
     np.testing.assert_array_equal(info["agent_final_obs"][0], [0, 1, 0])  # a0's last observation
     np.testing.assert_array_equal(obs, [[2, 1, 1], [1, 1, 0]])            # the row is a2's now
+    np.testing.assert_array_equal(info["position"], [[10, 0], [5, 0]])       # where a2 and a1 stand
+    np.testing.assert_array_equal(info["agent_final_position"][0], [0, 0])  # where a0 ended
     # step 2: a1's step limit (truncated), its slot is left empty
     obs, _, _, _, info = env.step(actions)
     np.testing.assert_array_equal(scene.actions_seen[1]["a2"], actions[0])
@@ -104,6 +106,20 @@ def test_gae_per_car_matches_a_hand_computation():
     expected = np.array([[d_a0 + g * lam * d_a1, d_c0], [d_a1, 0.0], [d_b2, d_d2]])
     np.testing.assert_allclose(adv, expected, rtol=1e-6)
     np.testing.assert_allclose(ret, np.where(acted, expected + values, 0.0), rtol=1e-6)
+
+
+def test_the_mean_field_critic_input_averages_the_neighbours_within_the_radius():
+    """One scene of three slots: cars at x = 0, 4 and 20 m (radius 5), and a car that ended at x = 3."""
+    obs = np.array([[[1.0, 0.0], [3.0, 2.0], [9.0, 9.0]]], np.float32)
+    positions = np.array([[[0.0, 0.0], [4.0, 0.0], [20.0, 0.0]]])
+    alive = np.array([[True, True, True]])
+    joint = mean_field(obs, positions, alive, obs, positions, radius=5.0)
+    np.testing.assert_allclose(joint, [[1, 0, 3, 2], [3, 2, 1, 0], [9, 9, 0, 0]])  # the far car has no neighbour
+    ended = np.array([[[7.0, 7.0], [0.0, 0.0], [0.0, 0.0]]], np.float32)
+    ended_at = np.array([[[3.0, 0.0], [np.nan, np.nan], [np.nan, np.nan]]])
+    joint = mean_field(obs, positions, alive, ended, ended_at, radius=5.0)
+    np.testing.assert_allclose(joint[0], [7, 7, 2, 1])                  # the mean of the cars at 0 and 4 m
+    np.testing.assert_allclose(joint[1:, 2:], 0)                         # no position: no neighbours
 
 
 IPPO = ["--algo", "ippo", "--env", "MultiAgentIntersection-v0", "--env.kwargs", '{"num_agents": 4, "horizon": 60}',

@@ -67,5 +67,5 @@ ALGORITHMS: Registry = Registry((
     # constrained: maximise the return while the mean episode cost stays under a limit
     "ppo_lag", "sac_lag",
     # multi-agent: one policy shared by every car of a MetaDrive multi-agent scene
-    "ippo",
+    "ippo", "mappo",
 ))

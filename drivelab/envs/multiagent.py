@@ -161,6 +161,15 @@ class MultiAgentDrive(ParallelEnv):
         return (obs, {a: float(rewards.get(a, 0.0)) for a in obs}, terminations, truncations,
                 {a: infos[a] for a in obs})
 
+    def positions(self, agents: list[str]) -> np.ndarray:
+        """(len(agents), 2) the cars' positions in metres (NaN for a car already taken off the road)."""
+        out = np.full((len(agents), 2), np.nan)
+        for i, agent in enumerate(agents):
+            car = self._env.agent_manager.get_agent(agent, raise_error=False)
+            if car is not None:
+                out[i] = car.position
+        return out
+
     def render(self) -> np.ndarray | None:
         """The whole scene from above, every car drawn (MetaDrive's pygame top-down view)."""
         if self.render_mode != "rgb_array":
@@ -195,7 +204,9 @@ class AgentSlots(gym.Env):
     * ``agent_terminated``, ``agent_truncated``: its episode ended here, and how;
     * ``agent_final_obs`` ``(K, D)``: its last observation where it ended (to bootstrap a truncation);
     * ``success``, ``crash``, ``out_of_road``, ``timeout``, ``route_completion``: its outcome where it ended;
+    * ``agent_final_position`` ``(K, 2)``: where it ended (NaN if MetaDrive took it off at once);
     * ``alive``: the slot holds a car after this step (the next action is that car's);
+    * ``position`` ``(K, 2)``: where the slot's car is after this step (NaN for a free slot);
     * ``scene_end``: scalar, the scene episode ended and a new one began (the rows are its first cars).
 
     A car that ends at step t and a new car that takes its slot at t are two episodes: the row of
@@ -231,7 +242,20 @@ class AgentSlots(gym.Env):
         if seed is not None:
             self._scene_rng = np.random.default_rng(seed)
         obs = self._new_scene()
-        return obs, {"alive": np.array([a is not None for a in self.slot_agent])}
+        return obs, {"alive": np.array([a is not None for a in self.slot_agent]), "position": self._positions()}
+
+    def _positions(self) -> np.ndarray:
+        """(K, 2) where the slots' cars are (NaN for free slots)."""
+        seated = [k for k, agent in enumerate(self.slot_agent) if agent is not None]
+        out = np.full((self.num_slots, 2), np.nan)
+        out[seated] = self._scene_positions([self.slot_agent[k] for k in seated])
+        return out
+
+    def _scene_positions(self, agents: list[str]) -> np.ndarray:
+        """Where the scene's cars are; NaN for a ParallelEnv that does not say (``positions``)."""
+        if not agents or not hasattr(self.scene, "positions"):
+            return np.full((len(agents), 2), np.nan)
+        return self.scene.positions(agents)
 
     def _new_scene(self) -> np.ndarray:
         obs, _ = self.scene.reset(seed=int(self._scene_rng.integers(2**31 - 1)))
@@ -258,7 +282,12 @@ class AgentSlots(gym.Env):
         info: dict[str, Any] = {"acted": np.zeros(k, bool), "agent_reward": np.zeros(k), "agent_cost": np.zeros(k),
                                 "agent_terminated": np.zeros(k, bool), "agent_truncated": np.zeros(k, bool),
                                 "agent_final_obs": np.zeros(self.observation_space.shape, self.observation_space.dtype),
-                                "route_completion": np.zeros(k), **{name: np.zeros(k, bool) for name in OUTCOMES}}
+                                "agent_final_position": np.full((k, 2), np.nan), "route_completion": np.zeros(k),
+                                **{name: np.zeros(k, bool) for name in OUTCOMES}}
+        ended = [(slot, agent) for slot, agent in enumerate(self.slot_agent)
+                 if agent is not None and (terminations[agent] or truncations[agent])]
+        if ended:
+            info["agent_final_position"][[slot for slot, _ in ended]] = self._scene_positions([a for _, a in ended])
         for slot, agent in enumerate(self.slot_agent):
             if agent is None:
                 continue
@@ -275,6 +304,7 @@ class AgentSlots(gym.Env):
         info["scene_end"] = not self.scene.agents
         rows = self._new_scene() if info["scene_end"] else self._seat(obs)
         info["alive"] = np.array([a is not None for a in self.slot_agent])
+        info["position"] = self._positions()
         acted = info["acted"]
         reward = float(info["agent_reward"][acted].mean()) if acted.any() else 0.0
         return rows, reward, False, False, info

@@ -44,18 +44,44 @@ AGENT_KEYS = ("acted", "agent_reward", "agent_cost", "agent_terminated", "agent_
               *OUTCOMES)
 
 
-def slot_arrays(info: dict, num_envs: int, num_slots: int) -> dict[str, np.ndarray]:
-    """The per-slot arrays of a vector env's batched ``info`` as (N x K,) arrays, and
-    ``agent_final_obs`` as (N x K, D). An env whose info lacks them (its worker was restarted
-    and the scene began anew) gets zeros: no car acted there."""
+def slot_arrays(info: dict, num_envs: int, num_slots: int, obs_dim: int) -> dict[str, np.ndarray]:
+    """The per-slot arrays of a vector env's batched ``info`` as (N x K, ...) arrays: (N x K,) for
+    the flags and numbers, (N x K, 2) for positions, (N x K, D) for ``agent_final_obs``. An env
+    whose info lacks a key (a restarted worker's new scene has no step yet) gets zeros there (NaN
+    positions): no car acted in it."""
+    shapes = {"agent_final_obs": ((num_slots, obs_dim), 0.0), "agent_final_position": ((num_slots, 2), np.nan),
+              "position": ((num_slots, 2), np.nan)}
     out = {}
-    for key in (*AGENT_KEYS, "agent_final_obs", "alive"):
+    for key in (*AGENT_KEYS, "agent_final_obs", "agent_final_position", "position", "alive"):
+        shape, fill = shapes.get(key, ((num_slots,), 0))
         present = info.get(f"_{key}", np.zeros(num_envs, bool))
-        rows = [np.asarray(info[key][i]) if present[i] else None for i in range(num_envs)]
-        shape = next((row.shape for row in rows if row is not None), (num_slots,))
-        dtype = next((row.dtype for row in rows if row is not None), np.float64)
-        out[key] = np.concatenate([row if row is not None else np.zeros(shape, dtype) for row in rows])
+        out[key] = np.concatenate([np.asarray(info[key][i]) if present[i] else np.full(shape, fill)
+                                   for i in range(num_envs)])
+    for key in ("acted", "agent_terminated", "agent_truncated", "alive", *OUTCOMES):
+        out[key] = out[key].astype(bool)
     return out
+
+
+def mean_field(obs: np.ndarray, positions: np.ndarray, alive: np.ndarray, query_obs: np.ndarray,
+               query_positions: np.ndarray, radius: float) -> np.ndarray:
+    """The critic's joint observation of each query car: its own observation, then the mean
+    observation of the other live cars of its scene within ``radius`` metres (zeros if none).
+
+    Args:
+        obs, positions, alive: (N, K, D), (N, K, 2), (N, K) the scenes' cars (slots) after a step.
+        query_obs, query_positions: (N, K, D), (N, K, 2) the cars whose joint observation is wanted
+            (the same cars, or the cars that ended at this step and their last observations).
+        radius: the neighbourhood, in metres.
+    Returns:
+        (N x K, 2 D) float32.
+    """
+    distance = np.linalg.norm(query_positions[:, :, None, :] - positions[:, None, :, :], axis=-1)  # (N, K, K)
+    # a car is not its own neighbour: the same slot at the same position (a new car in the slot is elsewhere)
+    near = (distance <= radius) & alive[:, None, :] & (distance > 0)
+    count = near.sum(-1, keepdims=True)
+    mean = np.einsum("nqk,nkd->nqd", near.astype(np.float32), obs) / np.maximum(count, 1)
+    joint = np.concatenate([query_obs, mean], axis=-1)
+    return joint.reshape(-1, joint.shape[-1]).astype(np.float32)
 
 
 def agent_advantages(rewards: np.ndarray, values: np.ndarray, next_values: np.ndarray, acted: np.ndarray,
@@ -88,6 +114,8 @@ class AgentRolloutCollector:
     def __init__(self, cfg: TrainConfig, run: Run):
         hp: ActorCriticParams = cfg.algo_params
         self.run, self.gamma, self.gae_lambda, self.device = run, hp.gamma, hp.gae_lambda, run.device
+        # MAPPO: the critic sees the mean observation of the neighbours within this radius (None: IPPO)
+        self.radius: float | None = getattr(hp, "neighbour_radius", None)
         # AgentSlots resets its own scenes: SAME_STEP only matters if a worker is restarted
         # (every car of its scene is then cut, as truncated, and the scene begins anew).
         self.envs = make_vector_env(cfg.env, autoreset_mode=AutoresetMode.SAME_STEP, on_restart=run.note_env_restart)
@@ -101,8 +129,11 @@ class AgentRolloutCollector:
         obs, info = self.envs.reset(seed=run.reset_seeds(np.ones(n, bool)))
         self.obs = obs.reshape(m, -1)
         self.alive = np.concatenate(list(info["alive"]))
-        # (T, M) storage, written in place every step
-        self.b_obs = torch.zeros((t, m, *self.obs_space.shape), dtype=torch.float32)
+        self.positions = np.concatenate(list(info["position"]))
+        # (T, M) storage, written in place every step; the policy's inputs (with a centralised
+        # critic, the joint observations: own and neighbours')
+        width = self.obs_space.shape[0] * (2 if self.radius is not None else 1)
+        self.b_obs = torch.zeros((t, m, width), dtype=torch.float32)
         self.b_actions = torch.zeros((t, m, *self.act_space.shape), dtype=torch.float32)
         self.b_log_probs, self.b_values = torch.zeros(t, m), torch.zeros(t, m)
         self.rewards, self.next_values = np.zeros((t, m)), np.zeros((t, m))
@@ -118,7 +149,7 @@ class AgentRolloutCollector:
         self.live_sum = 0.0
         for t in range(self.num_steps):
             self._step(agent, t)
-        last_value = agent.value(torch.as_tensor(self.obs, dtype=torch.float32, device=self.device)).cpu().numpy()
+        last_value = agent.value(self._inputs(self.obs, self.positions, self.alive)).cpu().numpy()
         # V(s_{t+1}) of a car that went on: the next row (same slot, same car) or, after the last row, last_value.
         went_on = self.acted & ~(self.terminated | self.truncated)
         following = np.concatenate([self.b_values[1:].numpy(), last_value[None]])
@@ -131,8 +162,21 @@ class AgentRolloutCollector:
                  torch.as_tensor(adv)[rows], torch.as_tensor(ret)[rows])
         return RolloutBatch(*(x.to(self.device) for x in batch))
 
+    def _inputs(self, obs: np.ndarray, positions: np.ndarray, alive: np.ndarray, query_obs: np.ndarray | None = None,
+                query_positions: np.ndarray | None = None) -> torch.Tensor:
+        """The policy's (M, D) inputs: the cars' observations, or with a centralised critic their
+        (M, 2 D) joint observations (:func:`mean_field`; ``query_*``: other cars than ``obs``'s own)."""
+        if self.radius is None:
+            own = obs if query_obs is None else query_obs
+            return torch.as_tensor(own, dtype=torch.float32, device=self.device)
+        n, k = self.num_envs, self.num_slots
+        scene = (obs.reshape(n, k, -1), positions.reshape(n, k, 2), alive.reshape(n, k))
+        query = (scene[0], scene[1]) if query_obs is None else (query_obs.reshape(n, k, -1),
+                                                                 query_positions.reshape(n, k, 2))
+        return torch.as_tensor(mean_field(*scene, *query, self.radius), device=self.device)
+
     def _step(self, agent: ActorCritic, t: int) -> None:
-        obs = torch.as_tensor(self.obs, dtype=torch.float32, device=self.device)
+        obs = self._inputs(self.obs, self.positions, self.alive)
         dist, value = agent.distribution_and_value(obs)
         action = sample(dist)
         self.b_obs[t], self.b_actions[t] = obs.cpu(), action.cpu()
@@ -140,12 +184,13 @@ class AgentRolloutCollector:
         env_action = agent.to_env(action).reshape(self.num_envs, self.num_slots, -1)
         with self.run.timing.env:
             next_obs, _, _, restarted, info = self.envs.step(env_action)
-        slots = slot_arrays(info, self.num_envs, self.num_slots)
+        slots = slot_arrays(info, self.num_envs, self.num_slots, self.obs_space.shape[0])
         acted = slots["acted"] & self.alive
         if restarted.any():  # a worker failed: its cars' episodes are cut where they were
             cut = np.repeat(restarted, self.num_slots) & self.alive
             slots["agent_truncated"] |= cut
             slots["agent_final_obs"][cut] = self.obs[cut]
+            slots["agent_final_position"][cut] = self.positions[cut]
             acted |= cut
         check_finite_step(next_obs, slots["agent_reward"], self.run.step)
         self.rewards[t], self.acted[t] = slots["agent_reward"], acted
@@ -153,12 +198,14 @@ class AgentRolloutCollector:
         self.next_values[t] = 0.0
         cut = self.truncated[t]
         if cut.any():  # a car's step limit: bootstrap from V of its last observation
-            final = torch.as_tensor(slots["agent_final_obs"][cut], dtype=torch.float32, device=self.device)
-            self.next_values[t, cut] = agent.value(final).cpu().numpy()
+            final = self._inputs(next_obs.reshape(len(self.obs), -1), slots["position"], slots["alive"].astype(bool),
+                                 slots["agent_final_obs"], slots["agent_final_position"])
+            self.next_values[t, cut] = agent.value(final[torch.as_tensor(cut)]).cpu().numpy()
         self._count_episodes(slots, acted)
         self.live_sum += float(acted.sum())
         self.obs = next_obs.reshape(len(self.obs), -1)
         self.alive = slots["alive"].astype(bool)  # after a restart: the new scenes' first cars
+        self.positions = slots["position"]
 
     def _count_episodes(self, slots: dict[str, np.ndarray], acted: np.ndarray) -> None:
         """Add each car's step to its running return, length and cost; hand ended cars to the run."""

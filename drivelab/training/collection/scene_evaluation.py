@@ -96,7 +96,7 @@ def _play(envs, policy, episodes: int, seed: int, deterministic: bool, recorder,
     while finished < episodes:
         action = policy.act(torch.as_tensor(obs.reshape(n * k, -1)), deterministic=deterministic)
         obs, reward, _, _, info = envs.step(policy.to_env(action).reshape(n, k, -1))
-        slots = slot_arrays(info, n, k)
+        slots = slot_arrays(info, n, k, envs.single_observation_space.shape[1])
         playing = np.repeat(scene_of < episodes, k)
         acted = slots["acted"] & playing
         running += np.stack([np.where(acted, slots["agent_reward"], 0.0), acted])
