@@ -21,6 +21,9 @@ BACKTICKED_FILE = re.compile(r"`([^`\s]+\.(?:json|jsonl|png|csv))`")
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 HEADING = re.compile(r"^(#{1,6})\s+(.*?)\s*#*\s*$")
 DOCS_LINK_IN_TEXT = re.compile(r"\bdocs/[\w.-]+\.md#[\w-]+")
+# the Markdown that names results files and links to sections: the README, the results docs, the guide
+DOCS = ["README.md", "docs/results.md", "docs/history.md", "benchmarks/README.md",
+        *sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs" / "guide").glob("*.md"))]
 
 
 # -- helpers (tested below on bad input, so that the checks can fail) --------------------------
@@ -179,12 +182,14 @@ def test_readme_lines_are_readable():
     assert long_lines((ROOT / "README.md").read_text()) == []
 
 
-@pytest.mark.parametrize("doc", ["README.md", "docs/results.md", "docs/history.md", "benchmarks/README.md"])
+@pytest.mark.parametrize("doc", DOCS)
 def test_named_results_files_exist(doc):
     text = (ROOT / doc).read_text()
     if doc == "README.md":  # bare names elsewhere in the README are run files (policy.json, ...)
         names = named_results_files(text, bare_names=False)
         names |= named_results_files(section(text, "Results"), bare_names=True)
+    elif doc.startswith("docs/guide/"):  # the guide names run files (state.json, policy.json) bare
+        names = named_results_files(text, bare_names=False)
     else:
         names = named_results_files(text, bare_names=True)
     assert missing(names) == []
@@ -215,7 +220,7 @@ def test_every_benchmark_script_is_indexed():
     assert [name for name in scripts if f"`{name}`" not in index] == []
 
 
-@pytest.mark.parametrize("doc", ["README.md", "docs/results.md", "docs/history.md", "benchmarks/README.md"])
+@pytest.mark.parametrize("doc", DOCS)
 def test_links_land_on_existing_files_and_headings(doc):
     assert broken_links(ROOT / doc) == []
 
@@ -231,3 +236,12 @@ def test_config_headers_are_short_and_link_to_existing_sections(config):
     header = config_header((ROOT / "drivelab" / "configs" / config).read_text())
     assert len(header) <= MAX_CONFIG_HEADER
     assert broken_docs_refs("\n".join(header)) == []
+
+
+def test_every_algorithm_has_a_page_on_the_site():
+    """docs/algorithms/NAME.md for each file of drivelab/algos/ (mkdocs' strict build checks the nav)."""
+    algos = sorted(p.stem for p in (ROOT / "drivelab" / "algos").glob("*.py") if p.stem != "__init__")
+    assert algos
+    assert [name for name in algos if not (ROOT / "docs" / "algorithms" / f"{name}.md").is_file()] == []
+    nav = (ROOT / "mkdocs.yml").read_text()
+    assert [name for name in algos if f"algorithms/{name}.md" not in nav] == []

@@ -112,7 +112,8 @@ class MultiAgentDrive(ParallelEnv):
         # Reproducible scenes: MetaDrive draws where cars spawn from an unseeded generator unless
         # force_seed_spawn_manager; seeded, a scene's scenario is where its cars start, and the
         # fixed-map scenes get many of them (PGMap's scenarios are maps: MetaDrive's own count).
-        seeding = {"force_seed_spawn_manager": True, **({} if scene == "PGMap" else {"num_scenarios": SPAWN_SCENARIOS})}
+        seeding = {"force_seed_spawn_manager": True,
+                   **({} if scene == "PGMap" else {"num_scenarios": SPAWN_SCENARIOS})}
         merged = {"use_render": False, "log_level": DEFAULTS["log_level"], **seeding, **config,
                   "num_agents": self.num_agents_max}
         try:
@@ -125,8 +126,8 @@ class MultiAgentDrive(ParallelEnv):
         self._act_space = self._env.action_space["agent0"]
         self.agents: list[str] = []
         horizon = self._env.config["horizon"] or 1000
-        # Names MetaDrive can give within one episode: the first cars, then at most one new car
-        # per spawn point per step until respawns stop at the horizon (a bound, never reached).
+        # Names MetaDrive can give within one episode: the first cars, then fewer than num_agents
+        # new cars per step until respawns stop at the horizon (a bound, never reached).
         self._possible = self.num_agents_max * (horizon + 1)
         self._start_seed = int(self._env.config["start_seed"])
         self._num_scenarios = int(self._env.config["num_scenarios"])
