@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import subprocess
 import sys
 import time
 from importlib.metadata import version
@@ -57,6 +58,16 @@ def cpu_gauge_ms(repeats: int = 3, updates: int = 200) -> float:
                                        for _ in range(repeats)), 2)
 
 
+def code_version() -> dict:
+    """The commit this script's checkout is at, and whether its tracked files had changes."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=Path(__file__).resolve().parent, capture_output=True,
+                              text=True).stdout.strip()
+
+    return {"commit": git("rev-parse", "HEAD"),
+            "uncommitted_changes": bool(git("status", "--porcelain", "--untracked-files=no"))}
+
+
 def train_seed(config: str, seed: int, run_dir: Path, overrides: dict | None = None) -> dict:
     """Train (or finish) one seed; its wall clock, steps, CPU and the CPU's speed before and after
     (:func:`cpu_gauge_ms`) are kept in RUN/training.json (30 minutes hold ~3x fewer steps on a CPU
@@ -70,7 +81,7 @@ def train_seed(config: str, seed: int, run_dir: Path, overrides: dict | None = N
     train(cfg, resume=bool(list_checkpoints(run_dir)))
     minutes = round((time.perf_counter() - started) / 60, 2)
     result = {"minutes": minutes, "steps": checkpoint_step(resolve_checkpoint(run_dir)), "cpu": cpu_model(),
-              "cpu_gauge_ms": [gauge_before, cpu_gauge_ms()]}
+              "cpu_gauge_ms": [gauge_before, cpu_gauge_ms()], **code_version()}
     record.write_text(json.dumps(result) + "\n")
     return result
 

@@ -139,6 +139,8 @@ def main() -> int:
     parser.add_argument("--runs", type=Path, default=Path("runs/safe"))
     parser.add_argument("--episodes", type=int, default=EPISODES, help="held-out scenarios (0..N-1)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/safe_drive.json"))
+    parser.add_argument("--baselines", nargs="*", default=["metadrive-expert", "random"],
+                        help="reference policies on the same scenarios (none: --baselines)")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="overrides for every arm, e.g. max_minutes=5 for a smoke run")
     args = parser.parse_args()
@@ -160,7 +162,7 @@ def main() -> int:
         arms[arm] = {"config": str(config.relative_to(CONFIGS.parent.parent)), "seeds": seeds,
                      "summary": summarise(list(seeds.values()))}
     baselines = {name: outcomes(evaluate_baseline(name, baseline_env(env_id=HELDOUT_ENV), args.episodes))
-                 for name in ("metadrive-expert", "random")}
+                 for name in args.baselines}
     limit = read_yaml(CONFIGS / f"{ARMS[CONSTRAINED]}.yaml").get("sac_lag", {}).get("cost_limit")
     result = {"benchmark": "safe-drive", **provenance(), "cpu_gauge_ms": [gauge_before, cpu_gauge_ms()],
               "overrides": overrides, "cost_limit": limit,
