@@ -14,6 +14,7 @@ rollout holds ``num_steps x num_envs`` of them and one sample per live car and s
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -52,10 +53,17 @@ update = ppo.update  # the PPO update, on the pooled decisions of every car
 
 
 def train(cfg: TrainConfig, run: Run) -> None:
+    train_shared_policy(cfg, run, build_policy)
+
+
+def train_shared_policy(cfg: TrainConfig, run: Run,
+                        build: Callable[[TrainConfig, gym.Space, gym.Space], ActorCritic]) -> None:
+    """The loop of a policy shared by every car (IPPO here; MAPPO with its centralised critic)."""
     hp: Params = cfg.algo_params
-    collector = AgentRolloutCollector(cfg, run)
-    agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
+    collector = AgentRolloutCollector(cfg, run)  # MAPPO's neighbour_radius: joint observations for its critic
+    agent = build(cfg, collector.obs_space, collector.act_space).to(run.device)
     optimizer = torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
+    own = collector.obs_space.shape[0]  # a sample's own observation: the first `own` numbers of batch.obs
     run.start({"policy": agent}, {"policy": optimizer}, policy=agent)
     try:
         while not run.done:
@@ -68,8 +76,8 @@ def train(cfg: TrainConfig, run: Run) -> None:
             with run.timing.update:
                 stats = update(agent, optimizer, batch, hp)
             run.record(stats)
-            if agent.obs_rms is not None:
-                agent.obs_rms.update(batch.obs.float())
+            if agent.obs_rms is not None:  # statistics of the cars' own observations
+                agent.obs_rms.update(batch.obs[:, :own].float())
             run.record({"charts/lr": optimizer.param_groups[0]["lr"], "charts/car_decisions": float(len(batch.obs)),
                         **std_log})
             # 3. Log and checkpoint when due (steps: scene steps).

@@ -15,14 +15,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import gymnasium as gym
-import torch
 
 from drivelab.algos import ippo, ppo
 from drivelab.config import TrainConfig
 from drivelab.errors import DrivelabError
-from drivelab.training.collection.agents import AgentRolloutCollector
-from drivelab.training.learning.optim import linear_decay, set_learning_rate
-from drivelab.training.learning.policy_nets import MeanFieldActorCritic, limit_log_std
+from drivelab.training.learning.policy_nets import MeanFieldActorCritic
 from drivelab.training.run import Run
 
 
@@ -49,26 +46,7 @@ update = ppo.update  # PPO's update; the batch's observations are the critic's j
 
 
 def train(cfg: TrainConfig, run: Run) -> None:
-    hp: Params = cfg.algo_params
-    collector = AgentRolloutCollector(cfg, run)  # with neighbour_radius: joint observations for the critic
-    agent = build_policy(cfg, collector.obs_space, collector.act_space).to(run.device)
-    optimizer = torch.optim.Adam(agent.parameters(), lr=hp.lr, eps=1e-5)
-    run.start({"policy": agent}, {"policy": optimizer}, policy=agent)
-    try:
-        while not run.done:
-            if hp.anneal_lr:
-                set_learning_rate(optimizer, linear_decay(hp.lr, run.step, cfg.steps))
-            std_log = limit_log_std(agent.actor, hp, run.step, cfg.steps)
-            # 1. T steps of every scene; each car's decisions, its joint observation and GAE(lambda).
-            batch = collector.collect(agent)
-            # 2. PPO's epochs on the pooled decisions (actor: own observations; critic: joint).
-            with run.timing.update:
-                stats = update(agent, optimizer, batch, hp)
-            run.record(stats)
-            if agent.obs_rms is not None:  # the statistics of the cars' own observations
-                agent.obs_rms.update(batch.obs[:, :agent.obs_dim].float())
-            run.record({"charts/lr": optimizer.param_groups[0]["lr"], "charts/car_decisions": float(len(batch.obs)),
-                        **std_log})
-            run.end_iteration(collector.steps_per_rollout)
-    finally:
-        collector.close()
+    """IPPO's loop (:func:`drivelab.algos.ippo.train_shared_policy`) with this file's actor-critic:
+    collect every car's decisions with their joint observations (``neighbour_radius``), then PPO's
+    epochs on them, the actor reading the own half and the critic the whole."""
+    ippo.train_shared_policy(cfg, run, build_policy)
