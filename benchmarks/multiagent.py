@@ -25,11 +25,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 from drive_recipe import cpu_gauge_ms, train_seed
-from eval_speed import provenance  # benchmarks/eval_speed.py
+from provenance import provenance  # benchmarks/provenance.py
 
 from drivelab.api import evaluate_checkpoint
 from drivelab.training.outputs.plots import read_metrics
@@ -121,6 +122,7 @@ def main() -> int:
     parser.add_argument("--runs", type=Path, default=Path("runs/ma"))
     parser.add_argument("--out", type=Path, default=None, help="default: benchmarks/results/CONFIG.json")
     args = parser.parse_args()
+    started = time.time()
     config = CONFIGS / f"{args.config}.yaml"
     args.out = args.out or Path("benchmarks/results") / f"{args.config}.json"
     gauge_before = cpu_gauge_ms()
@@ -145,7 +147,9 @@ def main() -> int:
         scenes[scene] = {"seeds": seeds, "summary": summarise(list(seeds.values()),
                                                               ("best_training_success", *EVAL_KEYS, "steps_per_s")),
                          "copo_published": {name: table.get(scene) for name, table in COPO_PUBLISHED.items()}}
-    result = {"benchmark": f"multiagent-{args.config}", **provenance(), "cpu_gauge_ms": [gauge_before, cpu_gauge_ms()],
+    gauge_after = cpu_gauge_ms()  # measured before provenance(), so that its end time follows every measurement
+    result = {"benchmark": f"multiagent-{args.config}", **provenance(started),
+              "cpu_gauge_ms": [gauge_before, gauge_after],
               "config": str(config.relative_to(CONFIGS.parent.parent)), "steps": args.steps,
               "protocol": "best training success over the cars' episodes (CoPO's measure), and deterministic "
                           f"evaluation of the final policy on {args.episodes} scene episodes (seeds 0..N-1)",

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 from drive_recipe import cpu_gauge_ms
-from eval_speed import provenance  # benchmarks/eval_speed.py
+from provenance import provenance  # benchmarks/provenance.py
 from gymnasium.vector import AutoresetMode
 
 from drivelab.envs import EnvConfig, make_vector_env
@@ -91,14 +91,17 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/multiagent_speed.json"))
     args = parser.parse_args()
+    started = time.time()
     gauge_before = cpu_gauge_ms()
     rates = [rate(args.scene, args.num_agents, n, args.steps) for n in (1, 2)]
-    result = {"benchmark": "multiagent-speed", **provenance(), "scene": args.scene, "num_agents": args.num_agents,
-              "steps": args.steps, "profile": profile(args.scene, args.num_agents, args.steps), "rates": rates,
+    profiled = profile(args.scene, args.num_agents, args.steps)
+    gauge_after = cpu_gauge_ms()  # measured before provenance(), so that its end time follows every measurement
+    result = {"benchmark": "multiagent-speed", **provenance(started), "scene": args.scene,
+              "num_agents": args.num_agents, "steps": args.steps, "profile": profiled, "rates": rates,
               "cores": os.cpu_count(),
               "projection": "env steps/s ~ processes x the 1-process rate while each process has a core "
                             f"({rates[0]['env_steps_per_s']:.1f} per process here)",
-              "cpu_gauge_ms": [gauge_before, cpu_gauge_ms()]}
+              "cpu_gauge_ms": [gauge_before, gauge_after]}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps({k: result[k] for k in ("profile", "rates")}, indent=1))

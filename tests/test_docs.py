@@ -153,6 +153,14 @@ def config_header(text: str) -> list[str]:
     return header
 
 
+def lacks_provenance(text: str) -> bool:
+    """Whether a benchmark script's text writes JSON to a file (dumps JSON and writes a file) but never
+    calls benchmarks/provenance.py's ``provenance(``: its results would not say how they were made."""
+    dumps = "json.dump(" in text or "json.dumps(" in text
+    writes = "json.dump(" in text or ".write_text(" in text or re.search(r"open\([^)]*['\"][wax]b?['\"]", text)
+    return dumps and bool(writes) and "provenance(" not in text
+
+
 # -- the checks --------------------------------------------------------------------------------
 
 
@@ -176,6 +184,11 @@ def test_helpers_catch_bad_input(tmp_path):
                     "```\n[in code](docs/none.md)\n```\n")
     assert broken_links(page) == ["docs/a.md#gone", "docs/b.md"]
     assert broken_docs_refs("# Results: docs/a.md#gone\n# docs/a.md#real-section", root=tmp_path) == ["docs/a.md#gone"]
+
+    assert lacks_provenance("Path(out).write_text(json.dumps(result))")
+    assert lacks_provenance("with open(out, 'w') as f:\n    json.dump(result, f)")
+    assert not lacks_provenance("Path(out).write_text(json.dumps({**result, **provenance(started)}))")
+    assert not lacks_provenance("print(json.dumps(result))\nrows = open(path).read()")  # prints, reads: no file
 
 
 def test_readme_lines_are_readable():
@@ -211,6 +224,14 @@ def test_every_current_results_file_is_cited():
     files = sorted(p for p in RESULTS.iterdir() if p.is_file())
     assert files
     assert [p.name for p in files if p.name not in cited and p.with_suffix(".json").name not in cited] == []
+
+
+def test_every_results_json_records_its_provenance():
+    """A benchmark script that writes JSON merges benchmarks/provenance.py's record into it (those
+    that write through training.py's report() get it there)."""
+    scripts = sorted(p for p in (ROOT / "benchmarks").glob("*.py") if p.name != "provenance.py")
+    assert scripts
+    assert [p.name for p in scripts if lacks_provenance(p.read_text())] == []
 
 
 def test_every_benchmark_script_is_indexed():
