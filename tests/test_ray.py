@@ -235,6 +235,10 @@ def test_merge_infos_keeps_gymnasiums_layout():
     assert merged["name"][2] == "x" and merged["_name"].tolist() == [False, False, True]
     assert merged["final_info"]["crash"].tolist() == [True, False, False]
     assert merged["_final_info"].tolist() == [True, False, False]
+    # an env's value may be an array (a multi-agent scene's slots): stacked as (n, K)
+    slots = merge_infos([(slice(0, 1), {"alive": np.array([[True, False]])}),
+                         (slice(1, 2), {"alive": np.array([[False, True]])})], 2)
+    assert slots["alive"].tolist() == [[True, False], [False, True]] and slots["_alive"].tolist() == [True, True]
 
 
 def test_sweep_plan_grid_and_seeds():
