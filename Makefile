@@ -7,7 +7,7 @@ BIN    := $(VENV)/bin
 TORCH  ?= torch==2.13.0
 DEMO   := runs/demo
 
-.PHONY: demo test test-fast install duckietown clean
+.PHONY: demo test test-fast docs install duckietown clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -37,6 +37,11 @@ demo: install
 # tests take a machine-wide lock for their cluster (tests/test_ray.py).
 test: install
 	$(BIN)/python -m pytest -q -n 2 --dist worksteal --durations=12
+
+# The documentation site (mkdocs.yml, pages in docs/): built offline into site/, strict, so a broken
+# link, a missing anchor or a docstring that fails to render fails the build.
+docs: install
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 
 test-fast: install
 	$(BIN)/python -m pytest -q -n 2 --dist worksteal -m "not slow"

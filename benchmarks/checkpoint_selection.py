@@ -20,11 +20,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 from pathlib import Path
 
 from drive_recipe import EPISODES as HELDOUT_EPISODES, HELDOUT_ENV  # the protocol whose `best` this scores
 from drivelab.api import evaluate_checkpoint
 from drivelab.training.outputs.checkpoint import checkpoint_step, list_checkpoints
+from provenance import provenance  # benchmarks/provenance.py
 
 
 def cached(path: Path, key: str, compute) -> dict:
@@ -53,6 +55,7 @@ def main() -> None:
     parser.add_argument("--from-step", type=int, default=150_000, help="skip earlier periodic checkpoints")
     parser.add_argument("--out")
     args = parser.parse_args()
+    started = time.time()
 
     table = {}
     for seed in args.seeds:
@@ -89,7 +92,8 @@ def main() -> None:
           f"{args.episodes}-scenario picks {summary['pick_mean']:.3f}")
     if args.out:
         Path(args.out).write_text(json.dumps({
-            "benchmark": "checkpoint-selection", "runs": str(args.runs), "episodes": args.episodes,
+            "benchmark": "checkpoint-selection", **provenance(started), "runs": str(args.runs),
+            "episodes": args.episodes,
             "selection_scenarios": [args.selection_seed, args.selection_seed + args.episodes - 1],
             "heldout": f"{HELDOUT_ENV}, scenarios 0-{HELDOUT_EPISODES - 1}", "seeds": table, "summary": summary,
         }, indent=1) + "\n")

@@ -24,6 +24,8 @@ import time
 from multiprocessing import Pool
 from pathlib import Path
 
+from provenance import provenance  # benchmarks/provenance.py
+
 ARMS = {
     "td3": {},
     "crossq": {"crossq": True},
@@ -96,6 +98,7 @@ def main() -> int:
     parser.add_argument("--arms", nargs="+", default=list(ARMS), choices=list(ARMS))
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/crossq.json"))
     args = parser.parse_args()
+    started = time.time()
     with tempfile.TemporaryDirectory() as tmp, Pool(2) as pool:
         rows = pool.map(train_arm, [(arm, seed, args.steps, tmp) for arm in args.arms for seed in args.seeds])
     for row in rows:
@@ -103,8 +106,9 @@ def main() -> int:
     costs = {"td3 (layer-norm critics, targets)": update_ms(crossq=False), "crossq": update_ms(crossq=True)}
     print("one update at the drive recipe's shapes, one thread: "
           + ", ".join(f"{name} {ms:.2f} ms" for name, ms in costs.items()))
-    result = {"benchmark": "crossq", "env": "Pendulum-v1", "steps": args.steps, "seeds": args.seeds,
-              "arms": {arm: ARMS[arm] for arm in args.arms}, "runs": rows, "update_ms_drive_shapes": costs}
+    result = {"benchmark": "crossq", **provenance(started), "env": "Pendulum-v1", "steps": args.steps,
+              "seeds": args.seeds, "arms": {arm: ARMS[arm] for arm in args.arms}, "runs": rows,
+              "update_ms_drive_shapes": costs}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     return 0

@@ -41,6 +41,7 @@ from drivelab.training.outputs.checkpoint import checkpoint_step, list_checkpoin
 from drivelab.training.outputs.statistics import mean_and_ci95
 from drivelab.training.outputs.plots import read_metrics
 from drivelab.training.run.timing import UpdateSection, cpu_model
+from provenance import provenance  # benchmarks/provenance.py
 from sac_update_cost import ms_per_update  # benchmarks/sac_update_cost.py
 
 HELDOUT_ENV, EPISODES = "MetaDrive-validation-v0", 200
@@ -58,19 +59,21 @@ def cpu_gauge_ms(repeats: int = 3, updates: int = 200) -> float:
 
 
 def train_seed(config: str, seed: int, run_dir: Path, overrides: dict | None = None) -> dict:
-    """Train (or finish) one seed; its wall clock, steps, CPU and the CPU's speed before and after
-    (:func:`cpu_gauge_ms`) are kept in RUN/training.json (30 minutes hold ~3x fewer steps on a CPU
-    ~3x slower: docs/results.md, "What these numbers promise")."""
+    """Train (or finish) one seed; its wall clock, steps, CPU, the CPU's speed before and after
+    (:func:`cpu_gauge_ms`) and its provenance (``benchmarks/provenance.py``) are kept in
+    RUN/training.json (30 minutes hold ~3x fewer steps on a CPU ~3x slower: docs/results.md, "What
+    these numbers promise")."""
     record = run_dir / "training.json"
     if record.is_file():
         return json.loads(record.read_text())
     cfg = build_config(merge_overrides({**read_yaml(config), "seed": seed, "run_dir": str(run_dir)}, overrides or {}))
+    wall_started = time.time()  # the provenance's start: the gauge's time is part of the record
     gauge_before = cpu_gauge_ms()
     started = time.perf_counter()
     train(cfg, resume=bool(list_checkpoints(run_dir)))
     minutes = round((time.perf_counter() - started) / 60, 2)
     result = {"minutes": minutes, "steps": checkpoint_step(resolve_checkpoint(run_dir)), "cpu": cpu_model(),
-              "cpu_gauge_ms": [gauge_before, cpu_gauge_ms()]}
+              "cpu_gauge_ms": [gauge_before, cpu_gauge_ms()], **provenance(wall_started)}
     record.write_text(json.dumps(result) + "\n")
     return result
 
@@ -138,6 +141,7 @@ def main() -> int:
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="config overrides for an ablation arm, e.g. td3.noise_decay_steps=200000")
     args = parser.parse_args()
+    started = time.time()
     overrides = {key: parse_value(value) for key, _, value in (item.partition("=") for item in args.set)}
     recipe = merge_overrides(read_yaml(args.config), overrides)
     previous = json.loads(args.out.read_text()) if args.out.is_file() else {}
@@ -169,8 +173,8 @@ def main() -> int:
         values = np.array([row[metric] for row in table.values()], float)
         mean, half = mean_and_ci95(values)
         summary[metric] = {"mean": float(mean), "ci95": float(half), "min": float(values.min()), "max": float(values.max())}
-    result = {"benchmark": "drive-recipe", "config": args.config, "overrides": overrides, "recipe": recipe,
-              "metadrive_version": version("metadrive-simulator"),
+    result = {"benchmark": "drive-recipe", **provenance(started), "config": args.config, "overrides": overrides,
+              "recipe": recipe, "metadrive_version": version("metadrive-simulator"),
               "protocol": "train on MetaDrive-1000envs (start seed 1000, 1000 scenarios); report checkpoints/best, "
                           "chosen on validation scenarios 200-229 during training, on the 200 unseen scenarios "
                           "0-199 (MetaDrive-validation-v0, default traffic, deterministic actions)",

@@ -62,6 +62,7 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int, default=2)
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args()
+    started = time.time()
     results = []
     for name, cfg in TASKS.items():
         if "Duckietown" in cfg.id and not duckietown_available():
@@ -75,7 +76,7 @@ def main() -> None:
                         f"vector_{args.num_envs}_envs_steps_per_s": vector})
         print(f"{name:<42}{single:8.0f} steps/s   {args.num_envs} envs: {vector:8.0f} steps/s   "
               f"(random episodes: {episode_length:.0f} steps)", file=sys.stderr)
-    report({"benchmark": "driving-tasks", "results": results}, args.out)
+    report({"benchmark": "driving-tasks", "results": results}, args.out, started)
 
 
 if __name__ == "__main__":

@@ -32,12 +32,9 @@ import argparse
 import copy
 import dataclasses
 import json
-import shlex
 import statistics
-import subprocess
 import sys
 import time
-from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
@@ -49,26 +46,10 @@ from drivelab.tools.drivers import resolve_policy_path
 from drivelab.tools.policies import checkpoint_config, policy_from_checkpoint
 from drivelab.training.collection.evaluation import play, run_episodes
 from drivelab.training.outputs.checkpoint import load_checkpoint
-from drivelab.training.run.timing import machine
-from drivelab.version import __version__
 from drive_recipe import cpu_gauge_ms  # benchmarks/drive_recipe.py
+from provenance import provenance  # benchmarks/provenance.py
 from throughput import drivelab_speed  # benchmarks/throughput.py
 from training import apply_overrides, env_steps_per_second  # benchmarks/training.py
-
-REPO = Path(__file__).resolve().parent.parent
-
-
-def provenance() -> dict:
-    """The command, the commit (and whether the tree had changes) and the versions of what was measured."""
-    def git(*args: str) -> str:
-        return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True).stdout.strip()
-
-    packages = ("torch", "numpy", "gymnasium", "metadrive-simulator")
-    return {"command": shlex.join(["python", *sys.argv]), "commit": git("rev-parse", "HEAD"),
-            "uncommitted_changes": bool(git("status", "--porcelain", "--untracked-files=no")),
-            "versions": {"python": sys.version.split()[0], "drivelab": __version__,
-                         **{name: version(name) for name in packages}},
-            "machine": machine()}
 
 
 def timed_evaluation(env_cfg, policy, episodes: int, seed: int, in_workers: bool) -> tuple[dict, object]:
@@ -112,7 +93,7 @@ def main() -> int:
                         help="overrides of the training config, e.g. td3.learning_starts=2000 (a shorter heat-up)")
     parser.add_argument("--out", default="benchmarks/results/eval_speed.json")
     args = parser.parse_args()
-    started = provenance()
+    started = time.time()
     gauge_before = cpu_gauge_ms()
     ckpt = load_checkpoint(resolve_policy_path(args.checkpoint))
     cfg = checkpoint_config(ckpt)
@@ -135,7 +116,8 @@ def main() -> int:
         repeats.append(row)
     median = {name: statistics.median(row[name] if name == "raw" else row[name]["decisions_per_s"] for row in repeats)
               for name in ("raw", "in_process", "workers", "training")}
-    result = {"benchmark": "eval-speed", **started, "cpu_gauge_ms": [gauge_before, cpu_gauge_ms()],
+    gauge_after = cpu_gauge_ms()  # measured before provenance(), so that its end time follows every measurement
+    result = {"benchmark": "eval-speed", **provenance(started), "cpu_gauge_ms": [gauge_before, gauge_after],
               "checkpoint": str(ckpt.path), "algo": cfg.algo, "train_env": cfg.env.id, "env": env_cfg.id,
               "num_envs": args.num_envs, "episodes": args.episodes, "seed": args.seed, "train_steps": args.train_steps,
               "overrides": args.set, "decisions_per_s_median": median,

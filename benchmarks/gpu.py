@@ -163,6 +163,7 @@ def main() -> None:
     parser.add_argument("--pack", help="tar.gz of the short runs (last checkpoint each), to evaluate elsewhere")
     parser.add_argument("--out")
     args = parser.parse_args()
+    started = time.time()
     result = {"benchmark": "gpu", "device": args.device, "torch": torch.__version__,
               "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
               "cpu_cores": os.cpu_count(), "cpu_threads_for_updates": torch.get_num_threads()}
@@ -174,7 +175,7 @@ def main() -> None:
             result["updates_per_s"] = update_speeds(args.device, args.seconds)
         if "ppo" not in args.skip:
             result["ppo_carracing"] = ppo_carracing_speed(args.device, work, args.ppo_steps, args.cpu_threads)
-    report(result, args.out)
+    report(result, args.out, started)
 
 
 if __name__ == "__main__":

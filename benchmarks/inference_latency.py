@@ -37,6 +37,7 @@ def main() -> None:
     parser.add_argument("--calls", type=int, default=5000)
     parser.add_argument("--out")
     args = parser.parse_args()
+    started = time.time()
     torch.set_num_threads(1)
     policy = drivelab.load(args.path)
     obs = policy.observation_space.sample()
@@ -56,7 +57,7 @@ def main() -> None:
                 "torchscript_us": median_us(lambda o: scripted(torch.as_tensor(o)), batch, args.calls),
                 "onnxruntime_us": median_us(lambda o: session.run(None, {"obs": o}), batch, args.calls),
             }
-    report(result, args.out)
+    report(result, args.out, started)
 
 
 if __name__ == "__main__":

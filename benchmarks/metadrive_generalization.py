@@ -39,6 +39,7 @@ from pathlib import Path
 from drivelab.api import build_config, checkpoint_config, evaluate_baseline, play, policy_from_checkpoint, train
 from drivelab.training.outputs.checkpoint import checkpoint_step, list_checkpoints, load_checkpoint
 from drivelab.config import EnvConfig, read_yaml
+from provenance import provenance  # benchmarks/provenance.py
 
 HELDOUT_ENV = "MetaDrive-validation-v0"
 
@@ -163,6 +164,7 @@ def main() -> None:
     parser.add_argument("--stochastic", action="store_true", help="sample every policy's actions (see above)")
     parser.add_argument("--out", help="JSON path (the PNG goes beside it); default RUN/generalization.json")
     args = parser.parse_args()
+    started = time.time()
     run_dir = Path(args.run_dir)
     out = Path(args.out) if args.out else run_dir / "generalization.json"
     out.parent.mkdir(parents=True, exist_ok=True)  # before hours of training and evaluation, not after
@@ -170,7 +172,7 @@ def main() -> None:
         wall = 0.0 if args.skip_train else train_run(args.config, run_dir, args.steps)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the run saved a checkpoint of this moment
         raise SystemExit(f"interrupted; the same command resumes the run in {run_dir}") from None
-    started = time.perf_counter()
+    eval_started = time.perf_counter()
     # A second call on the same output adds the new checkpoints (and baselines) only.
     previous = json.loads(out.read_text()) if out.exists() else {}
     actions = "sampled" if args.stochastic else "mode"
@@ -189,11 +191,12 @@ def main() -> None:
     metrics = [row for row in curve if "heldout" in row]
     peak = max(metrics, key=lambda row: (row["heldout"]["success_rate"], row["heldout"]["route_completion"]), default=None)
     cfg = read_yaml(run_dir / "config.yaml")
-    result = {"benchmark": "metadrive-generalization", "run_dir": str(run_dir), "algo": cfg["algo"],
-              "train_env": cfg["env"]["id"], "heldout_env": HELDOUT_ENV, "heldout_episodes": args.heldout,
-              "train_episodes": args.train_episodes, "actions": actions, "train_wall_s_this_call": wall,
-              "eval_wall_s": time.perf_counter() - started, "curve": curve, "selected": selected, "peak": peak,
-              "baselines": baselines}
+    eval_wall = time.perf_counter() - eval_started  # before provenance(), whose git calls it must not count
+    result = {"benchmark": "metadrive-generalization", **provenance(started), "run_dir": str(run_dir),
+              "algo": cfg["algo"], "train_env": cfg["env"]["id"], "heldout_env": HELDOUT_ENV,
+              "heldout_episodes": args.heldout, "train_episodes": args.train_episodes, "actions": actions,
+              "train_wall_s_this_call": wall, "eval_wall_s": eval_wall, "curve": curve, "selected": selected,
+              "peak": peak, "baselines": baselines}
     out.write_text(json.dumps(result, indent=1) + "\n")
     plot(curve, baselines, selected, out.with_suffix(".png"),
          f"{cfg['algo']} trained on {cfg['env']['id']}: {args.heldout} held-out validation scenarios"

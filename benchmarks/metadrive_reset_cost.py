@@ -41,6 +41,7 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=500, help="decisions to time")
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args()
+    started = time.time()
     cfg = build_config(read_yaml(args.config))
     env = make_env(cfg.env)
     first = env.unwrapped.start_seed
@@ -52,9 +53,9 @@ def main() -> int:
     step, episodes = [], 0
     env.reset(options={"scenario": first})
     for _ in range(args.steps):
-        started = time.perf_counter()
+        began = time.perf_counter()
         _, _, terminated, truncated, _ = env.step(action)
-        step.append((time.perf_counter() - started) * 1e3)
+        step.append((time.perf_counter() - began) * 1e3)
         if terminated or truncated:
             episodes += 1
             env.reset(options={"scenario": first})
@@ -68,7 +69,7 @@ def main() -> int:
               "episodes_in_step_timing": episodes,
               "new_map_reset_ms_each": [round(x, 1) for x in new_map],
               "stored_map_reset_ms_each": [round(x, 1) for x in stored_map]}
-    report(result, args.out)
+    report(result, args.out, started)
     return 0
 
 

@@ -23,11 +23,13 @@ import argparse
 import json
 import math
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 
 from drivelab.api import make_env
+from provenance import provenance  # benchmarks/provenance.py
 
 SOLID = ("ROAD_LINE_SOLID_SINGLE_WHITE", "ROAD_LINE_SOLID_SINGLE_YELLOW")
 CAR_HALF_WIDTH = 0.93  # metres; MetaDrive's default car is ~1.85 m wide
@@ -102,6 +104,7 @@ def main() -> None:
     parser.add_argument("--runs", type=Path, help="drive_recipe.py's run directory (RUN/seed_N/heldout.json)")
     parser.add_argument("--out")
     args = parser.parse_args()
+    started = time.time()
     start, count = args.scenarios
     # MetaDrive's validation scenarios (start seed 0) with no traffic: reset(seed=k) loads scenario k
     gym_env = make_env("MetaDrive-validation-v0", traffic_density=0.0)
@@ -117,7 +120,8 @@ def main() -> None:
     finally:
         gym_env.close()
     blocked = [any(line["touches_centred_car"] for line in s["lines"]) for s in scenarios.values()]
-    result = {"benchmark": "metadrive-solid-lines", "scenarios": [start, count], "margin_m": args.margin,
+    result = {"benchmark": "metadrive-solid-lines", **provenance(started), "scenarios": [start, count],
+              "margin_m": args.margin,
               "with_line_touching_a_centred_car": [seed for seed, b in zip(scenarios, blocked) if b],
               "with_every_lane_of_a_road_cut": [seed for seed, s in scenarios.items() if s["roads_with_every_lane_cut"]],
               "per_scenario": scenarios}

@@ -53,11 +53,12 @@ def main() -> None:
     parser.add_argument("--compile", action="store_true", help="torch.compile the networks")
     parser.add_argument("--out")
     args = parser.parse_args()
+    started = time.time()
     measure("ddpg", updates=10, steps=500, compile_=args.compile)   # warm-up, discarded
     results = {"benchmark": "offpolicy-speed", "env": "LunarLander-v3 (continuous)", "hidden": [400, 300],
                "batch_size": 256, "compile": args.compile,
                "algos": [measure(a, args.updates, args.steps, args.compile) for a in ("ddpg", "td3", "sac")]}
-    report(results, args.out)
+    report(results, args.out, started)
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ from drivelab import api
 from drivelab.config import EnvConfig
 from drivelab.envs import make_vector_env
 from drivelab.envs.ray_backend import connect
+from provenance import provenance  # benchmarks/provenance.py
 
 
 def vector_steps_per_s(env_cfg: EnvConfig, seconds: float) -> float:
@@ -63,6 +64,7 @@ def main() -> None:
     parser.add_argument("--ppo-steps", type=int, default=16384, help="per PPO measurement")
     parser.add_argument("--out", default="benchmarks/results/ray_backend.json")
     args = parser.parse_args()
+    started = time.time()
     connect(args.address)
     out: dict = {"cpus": os.cpu_count(), "transport": {}, "metadrive_raw": {}, "metadrive_ppo": {}}
 
@@ -110,7 +112,7 @@ def main() -> None:
           f"{t_trainer * 1e3:.2f} ms per env step -> projected {projection[16]:.0f} steps/s at 16 workers, "
           f"{projection[64]:.0f} at 64 (ceiling 1/t_trainer = {1 / max(t_trainer, 1e-9):.0f})")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=1))
+    Path(args.out).write_text(json.dumps({**out, **provenance(started)}, indent=1))
     print(f"written {args.out}")
 
 

@@ -60,6 +60,7 @@ def main() -> None:
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="config overrides")
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args()
+    started = time.time()
     torch.set_num_threads(1)  # as drivelab's trainer (cfg.torch_threads)
     data = read_yaml(args.config)
     # The trainer steps the envs (the parts timed here), lockstep, unless --set env.step_groups=N
@@ -82,15 +83,15 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         set_dotted(data, "run_dir", str(Path(tmp) / "run"))
         cfg = build_config(data)
-        started = time.perf_counter()
+        began = time.perf_counter()
         train(cfg, progress=False)
-        total = time.perf_counter() - started
+        total = time.perf_counter() - began
     result = {"benchmark": "rollout-profile", "config": args.config, "num_envs": args.num_envs, "steps": cfg.steps,
               "overrides": args.set, "total_s": total,
               "ms_per_env_step": {name: 1e3 * SECONDS[name] / cfg.steps for name in sorted(SECONDS, key=SECONDS.get,
                                                                                           reverse=True)},
               "calls": dict(CALLS)}
-    report(result, args.out)
+    report(result, args.out, started)
 
 
 if __name__ == "__main__":

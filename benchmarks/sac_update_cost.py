@@ -34,7 +34,7 @@ from drivelab.api import build_config
 from drivelab.training.learning.replay_buffer import ReplayBatch
 from drivelab.training.learning.offpolicy_nets import make_target
 from drivelab.training.learning.precision import update_precision
-from drivelab.training.run.timing import machine
+from provenance import provenance  # benchmarks/provenance.py
 
 OBS_DIM, ACT_DIM, HIDDEN = 275, 2, [128, 128]
 
@@ -84,6 +84,7 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
+    started = time.time()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     arms = [(128, 1, False), (256, 1, False), (256, 2, False), (256, 2, False, True), (256, 2, True), (512, 1, False),
@@ -92,9 +93,11 @@ def main() -> int:
     for _ in range(args.repeats):  # arms interleaved, so drift of the machine hits them alike
         for arm in arms:
             timings[arm_name(*arm)].append(ms_per_update(*arm, updates=args.updates))
-    result = {"benchmark": "sac-update-cost", "shapes": {"obs": OBS_DIM, "act": ACT_DIM, "hidden": HIDDEN,
-                                                         "critic_layer_norm": True, "torch_threads": 1},
-              "machine": machine(), "ms_per_update_median": {k: round(statistics.median(v), 2) for k, v in timings.items()},
+    # provenance's "machine" is the CPU the numbers depend on
+    result = {"benchmark": "sac-update-cost", **provenance(started),
+              "shapes": {"obs": OBS_DIM, "act": ACT_DIM, "hidden": HIDDEN, "critic_layer_norm": True,
+                         "torch_threads": 1},
+              "ms_per_update_median": {k: round(statistics.median(v), 2) for k, v in timings.items()},
               "ms_per_update": {k: [round(x, 2) for x in v] for k, v in timings.items()}}
     text = json.dumps(result, indent=1)
     print(text)

@@ -27,11 +27,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 from drive_recipe import cpu_gauge_ms, train_seed
-from eval_speed import provenance  # benchmarks/eval_speed.py
+from provenance import provenance  # benchmarks/provenance.py
 
 from drivelab.api import baseline_env, evaluate_baseline, evaluate_checkpoint
 from drivelab.config import parse_value, read_yaml
@@ -139,9 +140,12 @@ def main() -> int:
     parser.add_argument("--runs", type=Path, default=Path("runs/safe"))
     parser.add_argument("--episodes", type=int, default=EPISODES, help="held-out scenarios (0..N-1)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/safe_drive.json"))
+    parser.add_argument("--baselines", nargs="*", default=["metadrive-expert", "random"],
+                        help="reference policies on the same scenarios (none: --baselines)")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="overrides for every arm, e.g. max_minutes=5 for a smoke run")
     args = parser.parse_args()
+    started = time.time()
     overrides = {key: parse_value(value) for key, _, value in (item.partition("=") for item in args.set)}
     gauge_before = cpu_gauge_ms()
     arms = {}
@@ -160,9 +164,10 @@ def main() -> int:
         arms[arm] = {"config": str(config.relative_to(CONFIGS.parent.parent)), "seeds": seeds,
                      "summary": summarise(list(seeds.values()))}
     baselines = {name: outcomes(evaluate_baseline(name, baseline_env(env_id=HELDOUT_ENV), args.episodes))
-                 for name in ("metadrive-expert", "random")}
+                 for name in args.baselines}
     limit = read_yaml(CONFIGS / f"{ARMS[CONSTRAINED]}.yaml").get("sac_lag", {}).get("cost_limit")
-    result = {"benchmark": "safe-drive", **provenance(), "cpu_gauge_ms": [gauge_before, cpu_gauge_ms()],
+    gauge_after = cpu_gauge_ms()  # measured before provenance(), so that its end time follows every measurement
+    result = {"benchmark": "safe-drive", **provenance(started), "cpu_gauge_ms": [gauge_before, gauge_after],
               "overrides": overrides, "cost_limit": limit,
               "protocol": f"train on each config's SafeMetaDrive split; report checkpoints/best, chosen on scenarios "
                           f"200-229 during training, on the unseen scenarios 0-{args.episodes - 1} of "

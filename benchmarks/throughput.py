@@ -181,6 +181,7 @@ def main() -> None:
                         help="config overrides for drivelab's contenders (SB3 reads the config as given)")
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args()
+    started = time.time()
     checkpoint = resolve_checkpoint(args.from_checkpoint) if args.from_checkpoint else None
     # `acting`: the checkpoint's policy sampling actions without learning, the ceiling for continuing
     # its run (a trained car ends episodes, and rebuilds maps, at other rates than a random one)
@@ -238,7 +239,7 @@ def main() -> None:
         results.append(row)
     report({"benchmark": "offpolicy-throughput" if offpolicy else "onpolicy-throughput", "config": args.config, "steps": args.steps,
             "from_checkpoint": str(checkpoint) if checkpoint else None, "overrides": args.set,
-            "repeats": args.repeats, "sb3_threads": args.sb3_threads, "results": results}, args.out)
+            "repeats": args.repeats, "sb3_threads": args.sb3_threads, "results": results}, args.out, started)
 
 
 if __name__ == "__main__":

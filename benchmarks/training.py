@@ -32,11 +32,14 @@ from drivelab.api import build_config, evaluate_checkpoint, train
 from drivelab.training.outputs.checkpoint import checkpoint_step
 from drivelab.config import parse_value, read_yaml, set_dotted
 from drivelab.envs.groups import EnvGroups
+from provenance import provenance  # benchmarks/provenance.py
 
 
-def report(result: dict, out: str | None) -> None:
-    """Print a benchmark's JSON result, and write it to ``out`` when given."""
-    text = json.dumps(result, indent=1)
+def report(result: dict, out: str | None, started: float) -> None:
+    """Print a benchmark's JSON result with its provenance (``started``: the time.time() its main
+    began), and write it to ``out`` when given."""
+    # The result's own keys win (e.g. inference_latency.py's "threads": 1): provenance adds only the keys it lacks
+    text = json.dumps({**result, **{k: v for k, v in provenance(started).items() if k not in result}}, indent=1)
     print(text)
     if out:
         Path(out).write_text(text + "\n")
@@ -162,8 +165,9 @@ def main() -> None:
     learn_p.add_argument("--run-dir", help="keep the run here (default: a temporary directory)")
     learn_p.add_argument("--no-progress", action="store_true")
     args = parser.parse_args()
+    started = time.time()
     result = speed(args) if args.command == "speed" else learn(args)
-    report(result, args.out)
+    report(result, args.out, started)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,10 @@ import json
 import statistics
 import subprocess
 import sys
+import time
 from pathlib import Path
+
+from provenance import provenance  # benchmarks/provenance.py
 
 PROBE = """
 import functools, json, sys, time
@@ -55,10 +58,9 @@ def main() -> None:
     parser.add_argument("--starts", type=int, default=5)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/worker_start.json"))
     args = parser.parse_args()
+    started = time.time()
     if args.starts < 2:
         parser.error("--starts must be 2 or more: the first start and the later ones are reported apart")
-    from drivelab.training.run.timing import machine
-
     rows = {}
     for method in ("spawn", "forkserver"):
         seconds = time_starts(method, args.env, args.num_envs, args.starts)
@@ -66,7 +68,8 @@ def main() -> None:
                         "seconds": [round(s, 2) for s in seconds]}
         row = rows[method]
         print(f"{method:>10}: first start {row['first_s']} s, later starts {row['later_median_s']} s (median)")
-    result = {"env": args.env, "num_envs": args.num_envs, "starts": args.starts, "machine": machine(), "methods": rows}
+    # provenance records the machine (CPU, cores), which these seconds depend on
+    result = {**provenance(started), "env": args.env, "num_envs": args.num_envs, "starts": args.starts, "methods": rows}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
 

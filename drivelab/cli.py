@@ -434,9 +434,10 @@ def cmd_models() -> int:
 
 
 def cmd_envs() -> int:
-    from drivelab.envs.registration import TASKS, metadrive_ids
+    from drivelab.envs.registration import MULTIAGENT_SCENES, TASKS, metadrive_ids
 
     print("\n".join([*metadrive_ids(), *TASKS]))
+    print("multi-agent scenes (algo ippo or mappo):\n" + "\n".join(MULTIAGENT_SCENES))
     print("(and any Gymnasium id: CartPole-v1, LunarLander-v3, CarRacing-v3, ...)")
     return 0
 

@@ -35,6 +35,7 @@ import yaml
 
 from drivelab.envs.config import BACKENDS, EnvConfig  # noqa: F401  (re-exported: the env section)
 from drivelab.envs.costs import refuse_cost_to_reward
+from drivelab.envs.registration import is_known, is_multiagent
 from drivelab.errors import DrivelabError
 
 
@@ -499,11 +500,25 @@ def _validate(cfg: TrainConfig) -> None:
         _check_writable(Path(cfg.run_dir))
     _check_hyperparameters(cfg.algo, cfg.algo_params)
     cfg.env.validate()
+    _check_agents(cfg)
     refuse_cost_to_reward(cfg.eval.kwargs, "config field 'eval.kwargs'")
     if hasattr(cfg.algo_params, "validate"):
         cfg.algo_params.validate()
     if hasattr(cfg.algo_params, "validate_env"):  # constraints between the algorithm and the env
         cfg.algo_params.validate_env(cfg.env)
+
+
+def _check_agents(cfg: TrainConfig) -> None:
+    """Multi-agent scenes train with the multi-agent algorithms (``Params.multiagent``), and only they do."""
+    if not is_known(cfg.env.id):
+        return  # an unknown id is said, with close matches, where the env is built
+    scene = is_multiagent(cfg.env.id)
+    if scene != getattr(cfg.algo_params, "multiagent", False):
+        which = "a multi-agent scene: train it with ippo or mappo" if scene else "a single-agent env"
+        raise DrivelabError(f"config field 'algo': {cfg.algo} cannot train on '{cfg.env.id}', {which}")
+    if scene and cfg.eval.every:
+        raise DrivelabError("config field 'eval.every': multi-agent runs log episode/* over the cars' episodes "
+                            "and are evaluated afterwards with `drivelab eval RUN`; set it to 0")
 
 
 def _check_hyperparameters(algo: str, params: Any) -> None:

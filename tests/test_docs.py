@@ -21,6 +21,9 @@ BACKTICKED_FILE = re.compile(r"`([^`\s]+\.(?:json|jsonl|png|csv))`")
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 HEADING = re.compile(r"^(#{1,6})\s+(.*?)\s*#*\s*$")
 DOCS_LINK_IN_TEXT = re.compile(r"\bdocs/[\w.-]+\.md#[\w-]+")
+# the Markdown that names results files and links to sections: the README, the results docs, the guide
+DOCS = ["README.md", "docs/results.md", "docs/history.md", "benchmarks/README.md",
+        *sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs" / "guide").glob("*.md"))]
 
 
 # -- helpers (tested below on bad input, so that the checks can fail) --------------------------
@@ -150,6 +153,14 @@ def config_header(text: str) -> list[str]:
     return header
 
 
+def lacks_provenance(text: str) -> bool:
+    """Whether a benchmark script's text writes JSON to a file (dumps JSON and writes a file) but never
+    calls benchmarks/provenance.py's ``provenance(``: its results would not say how they were made."""
+    dumps = "json.dump(" in text or "json.dumps(" in text
+    writes = "json.dump(" in text or ".write_text(" in text or re.search(r"open\([^)]*['\"][wax]b?['\"]", text)
+    return dumps and bool(writes) and "provenance(" not in text
+
+
 # -- the checks --------------------------------------------------------------------------------
 
 
@@ -174,17 +185,24 @@ def test_helpers_catch_bad_input(tmp_path):
     assert broken_links(page) == ["docs/a.md#gone", "docs/b.md"]
     assert broken_docs_refs("# Results: docs/a.md#gone\n# docs/a.md#real-section", root=tmp_path) == ["docs/a.md#gone"]
 
+    assert lacks_provenance("Path(out).write_text(json.dumps(result))")
+    assert lacks_provenance("with open(out, 'w') as f:\n    json.dump(result, f)")
+    assert not lacks_provenance("Path(out).write_text(json.dumps({**result, **provenance(started)}))")
+    assert not lacks_provenance("print(json.dumps(result))\nrows = open(path).read()")  # prints, reads: no file
+
 
 def test_readme_lines_are_readable():
     assert long_lines((ROOT / "README.md").read_text()) == []
 
 
-@pytest.mark.parametrize("doc", ["README.md", "docs/results.md", "docs/history.md", "benchmarks/README.md"])
+@pytest.mark.parametrize("doc", DOCS)
 def test_named_results_files_exist(doc):
     text = (ROOT / doc).read_text()
     if doc == "README.md":  # bare names elsewhere in the README are run files (policy.json, ...)
         names = named_results_files(text, bare_names=False)
         names |= named_results_files(section(text, "Results"), bare_names=True)
+    elif doc.startswith("docs/guide/"):  # the guide names run files (state.json, policy.json) bare
+        names = named_results_files(text, bare_names=False)
     else:
         names = named_results_files(text, bare_names=True)
     assert missing(names) == []
@@ -208,6 +226,14 @@ def test_every_current_results_file_is_cited():
     assert [p.name for p in files if p.name not in cited and p.with_suffix(".json").name not in cited] == []
 
 
+def test_every_results_json_records_its_provenance():
+    """A benchmark script that writes JSON merges benchmarks/provenance.py's record into it (those
+    that write through training.py's report() get it there)."""
+    scripts = sorted(p for p in (ROOT / "benchmarks").glob("*.py") if p.name != "provenance.py")
+    assert scripts
+    assert [p.name for p in scripts if lacks_provenance(p.read_text())] == []
+
+
 def test_every_benchmark_script_is_indexed():
     index = (ROOT / "benchmarks" / "README.md").read_text()
     scripts = sorted(p.name for p in (ROOT / "benchmarks").glob("*.py"))
@@ -215,7 +241,7 @@ def test_every_benchmark_script_is_indexed():
     assert [name for name in scripts if f"`{name}`" not in index] == []
 
 
-@pytest.mark.parametrize("doc", ["README.md", "docs/results.md", "docs/history.md", "benchmarks/README.md"])
+@pytest.mark.parametrize("doc", DOCS)
 def test_links_land_on_existing_files_and_headings(doc):
     assert broken_links(ROOT / doc) == []
 
@@ -231,3 +257,12 @@ def test_config_headers_are_short_and_link_to_existing_sections(config):
     header = config_header((ROOT / "drivelab" / "configs" / config).read_text())
     assert len(header) <= MAX_CONFIG_HEADER
     assert broken_docs_refs("\n".join(header)) == []
+
+
+def test_every_algorithm_has_a_page_on_the_site():
+    """docs/algorithms/NAME.md for each file of drivelab/algos/ (mkdocs' strict build checks the nav)."""
+    algos = sorted(p.stem for p in (ROOT / "drivelab" / "algos").glob("*.py") if p.stem != "__init__")
+    assert algos
+    assert [name for name in algos if not (ROOT / "docs" / "algorithms" / f"{name}.md").is_file()] == []
+    nav = (ROOT / "mkdocs.yml").read_text()
+    assert [name for name in algos if f"algorithms/{name}.md" not in nav] == []

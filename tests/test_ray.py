@@ -86,6 +86,21 @@ def test_training_on_ray_actors_equals_the_local_backend(algo, env, extra, clust
     assert remote == local
 
 
+def test_multiagent_scenes_train_on_ray_actors_as_in_subprocesses(cluster, tmp_path):
+    """IPPO on MetaDrive's Intersection (two scenes of four cars): the same metrics on Ray actors as
+    in local subprocesses, so a multi-agent run scales out with env.backend: ray unchanged."""
+    runs = {}
+    for backend in ("async", "ray"):
+        env_section = {"id": "MultiAgentIntersection-v0", "num_envs": 2, "backend": backend, "actor_cpus": 0.5,
+                       "kwargs": {"num_agents": 4, "horizon": 60}}
+        runs[backend] = drivelab.train("ippo", env_section, steps=128, seed=3, run_dir=tmp_path / backend,
+                                       progress=False, ray_address=cluster, log_every=64, eval={"every": 0},
+                                       ippo={"num_steps": 32, "hidden": [32, 32]}).run_dir
+    local, remote = metrics(runs["async"]), metrics(runs["ray"])
+    assert {name for _, name, _ in remote} >= {"episode/return", "charts/live_agents"}
+    assert remote == local
+
+
 def test_a_killed_env_actor_is_replaced_and_the_run_completes(cluster, tmp_path, run_cli):
     run_dir = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "drivelab", "train", "--algo", "ppo", "--env", "CartPole-v1",
@@ -220,6 +235,10 @@ def test_merge_infos_keeps_gymnasiums_layout():
     assert merged["name"][2] == "x" and merged["_name"].tolist() == [False, False, True]
     assert merged["final_info"]["crash"].tolist() == [True, False, False]
     assert merged["_final_info"].tolist() == [True, False, False]
+    # an env's value may be an array (a multi-agent scene's slots): stacked as (n, K)
+    slots = merge_infos([(slice(0, 1), {"alive": np.array([[True, False]])}),
+                         (slice(1, 2), {"alive": np.array([[False, True]])})], 2)
+    assert slots["alive"].tolist() == [[True, False], [False, True]] and slots["_alive"].tolist() == [True, True]
 
 
 def test_sweep_plan_grid_and_seeds():

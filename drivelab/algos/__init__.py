@@ -66,4 +66,6 @@ ALGORITHMS: Registry = Registry((
     "reinforce", "a2c", "ppo", "grpo", "ddpg", "td3", "sac",
     # constrained: maximise the return while the mean episode cost stays under a limit
     "ppo_lag", "sac_lag",
+    # multi-agent: one policy shared by every car of a MetaDrive multi-agent scene
+    "ippo", "mappo",
 ))

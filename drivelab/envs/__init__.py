@@ -25,7 +25,8 @@ from drivelab.envs.config import EnvConfig
 from drivelab.envs.costs import CostSignal
 from drivelab.envs.filters import apply_filters
 from drivelab.envs.metadrive import held_in_simulator
-from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs, registered_id
+from drivelab.envs.multiagent import agent_spaces
+from drivelab.envs.registration import is_multiagent, metadrive_ids, needs_own_process, register_envs, registered_id
 from drivelab.envs.rewards import RewardShaping
 from drivelab.envs.supervised import SupervisedVectorEnv
 from drivelab.envs.wrappers import (
@@ -83,6 +84,9 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
     env = _make_base_env(cfg.id, env_id, kwargs, render_mode)
+    if is_multiagent(env_id):  # agent slots: MetaDrive's own settings only (EnvConfig refuses the wrappers)
+        env = KillPointInWorker(env) if in_worker and os.environ.get("DRIVELAB_KILL_AT", "").startswith("env-worker") else env
+        return wrapper(env) if wrapper is not None else env
     env = CostSignal(env, cfg.cost)  # silent on an env that reports no cost and has no env.cost terms
     if cfg.scenario_replay:
         env = ScenarioReplay(env, cfg.scenario_replay)
@@ -139,12 +143,15 @@ def _find_wrapper(env: gym.Env, kind: type[gym.Wrapper]) -> gym.Wrapper | None:
 
 
 def env_spaces(cfg: EnvConfig, wrapper: Callable[[gym.Env], gym.Env] | None = None) -> tuple[gym.Space, gym.Space]:
-    """(observation_space, action_space) of one env, after drivelab's wrappers.
+    """(observation_space, action_space) of one env, after drivelab's wrappers: the spaces a
+    policy acts in (for a multi-agent scene, those of one agent: every car shares the policy).
 
     Builds the env in this process without resetting it; for MetaDrive this starts no engine.
     """
     env = make_env(cfg, wrapper=wrapper)
     try:
+        if is_multiagent(cfg.id):
+            return agent_spaces(env.observation_space), agent_spaces(env.action_space)
         return env.observation_space, env.action_space
     finally:
         env.close()

@@ -12,7 +12,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from drivelab.envs.costs import refuse_cost_to_reward, validate_cost_config
-from drivelab.envs.registration import metadrive_ids, needs_own_process, register_envs, registered_id
+from drivelab.envs.registration import (
+    MULTIAGENT_SCENES,
+    is_multiagent,
+    metadrive_ids,
+    needs_own_process,
+    register_envs,
+    registered_id,
+)
 from drivelab.envs.rewards import validate_reward_config
 from drivelab.envs.wrappers import parse_grid
 from drivelab.errors import DrivelabError
@@ -116,6 +123,27 @@ class EnvConfig:
         if self.cost is not None:
             validate_cost_config(self.cost, f"{where}.cost")
         refuse_cost_to_reward(self.kwargs, f"config field '{where}.kwargs'")
+        if is_multiagent(self.id):
+            self._check_multiagent(where)
+
+    # Fields that wrap a single-agent env; the slots of a multi-agent scene take none of them.
+    SINGLE_AGENT_FIELDS = ("action_grid", "fixed_throttle", "reward", "cost", "obs_filters", "scenario_replay",
+                           "simulator_repeat")
+
+    def _check_multiagent(self, where: str) -> None:
+        """A multi-agent scene: no single-agent wrappers, and ``kwargs.num_agents`` within its spawn points."""
+        from drivelab.envs.multiagent import check_num_agents
+
+        defaults = EnvConfig()
+        for name in self.SINGLE_AGENT_FIELDS:
+            if getattr(self, name) != getattr(defaults, name):
+                raise DrivelabError(f"config field '{where}.{name}' wraps a single-agent env; the multi-agent scene "
+                                    f"'{self.id}' takes MetaDrive's own settings in '{where}.kwargs'")
+        if self.action_repeat != 1:
+            raise DrivelabError(f"config field '{where}.action_repeat': the multi-agent scene '{self.id}' takes "
+                                f"MetaDrive's decision_repeat in '{where}.kwargs' instead")
+        check_num_agents(MULTIAGENT_SCENES[registered_id(self.id)], self.kwargs.get("num_agents"),
+                         f"config field '{where}.kwargs.num_agents'")
 
     def on(self, env_id: str, kwargs: dict[str, Any] | None = None) -> EnvConfig:
         """This config (wrappers, filters, action grid) on another env id, e.g. a validation set:

@@ -287,7 +287,8 @@ def merge_infos(parts: list[tuple[slice, dict]], n: int) -> dict:
             merged["_" + key] = mask
             continue
         first = np.asarray(present[0][1])
-        values = np.zeros(n, first.dtype) if first.dtype != object else np.empty(n, object)
+        # (n, ...): an env's value may be an array itself (a multi-agent scene's per-slot arrays)
+        values = np.zeros((n, *first.shape[1:]), first.dtype) if first.dtype != object else np.empty(n, object)
         mask = np.zeros(n, bool)
         for envs, value, sub_mask in present:
             values[envs] = value

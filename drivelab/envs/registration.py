@@ -27,6 +27,11 @@ space):
   CNN agents (no 3D assets needed).
 * ``drivelab/DuckietownLaneFollow-v0``: Duckietown camera lane following, an optional extra
   (``make duckietown``).
+
+Multi-agent scenes (:mod:`drivelab.envs.multiagent`): ``MultiAgentIntersection-v0``,
+``MultiAgentRoundabout-v0``, ``MultiAgentTollgate-v0``, ``MultiAgentBottleneck-v0``,
+``MultiAgentParkingLot-v0`` and ``MultiAgentPGMap-v0``, as Gymnasium envs of K agent slots
+(:class:`~drivelab.envs.multiagent.AgentSlots`) that the multi-agent trainers step.
 """
 
 from __future__ import annotations
@@ -42,6 +47,10 @@ from drivelab.errors import DrivelabError
 METADRIVE_ENTRY_POINT = "drivelab.envs.metadrive:MetaDriveGym"
 LANE_FOLLOW_ENTRY_POINT = "drivelab.envs.tasks:lane_follow"
 DUCKIETOWN_ENTRY_POINT = "drivelab.envs.duckietown:DuckietownLaneFollow"
+MULTIAGENT_ENTRY_POINT = "drivelab.envs.multiagent:AgentSlots"
+# drivelab id -> MetaDrive multi-agent scene (drivelab.envs.multiagent.SCENES)
+MULTIAGENT_SCENES = {f"MultiAgent{scene}-v0": scene
+                     for scene in ("Intersection", "Roundabout", "Tollgate", "Bottleneck", "ParkingLot", "PGMap")}
 
 # (id suffix, start_seed, num_scenarios)
 _METADRIVE_SPLITS = (
@@ -55,6 +64,24 @@ _METADRIVE_SPLITS = (
 def metadrive_ids() -> list[str]:
     """Every MetaDrive id that drivelab registers."""
     return [f"{prefix}-{suffix}" for prefix in ("MetaDrive", "SafeMetaDrive") for suffix, _, _ in _METADRIVE_SPLITS]
+
+
+def is_multiagent(env_id: str) -> bool:
+    """Whether ``env_id`` is one of the multi-agent scenes (an env of agent slots)."""
+    register_envs()
+    try:
+        return gym.spec(registered_id(env_id)).entry_point == MULTIAGENT_ENTRY_POINT
+    except gym.error.Error:
+        return False
+
+
+def is_known(env_id: str) -> bool:
+    """Whether ``env_id`` names a registered env (after importing its module, for "module:EnvId")."""
+    register_envs()
+    try:
+        return registered_id(env_id) in gym.registry
+    except DrivelabError:
+        return False
 
 
 def registered_id(env_id: str) -> str:
@@ -120,7 +147,8 @@ def needs_own_process(env_id: str) -> bool:
         entry_point = gym.spec(registered_id(env_id)).entry_point
     except gym.error.Error:
         return False
-    return isinstance(entry_point, str) and (entry_point in (METADRIVE_ENTRY_POINT, LANE_FOLLOW_ENTRY_POINT)
+    return isinstance(entry_point, str) and (entry_point in (METADRIVE_ENTRY_POINT, LANE_FOLLOW_ENTRY_POINT,
+                                                             MULTIAGENT_ENTRY_POINT)
                                              or entry_point.startswith("metadrive"))
 
 
@@ -147,3 +175,6 @@ def register_envs() -> None:
                 entry_point=METADRIVE_ENTRY_POINT,
                 kwargs={"start_seed": start_seed, "num_scenarios": num_scenarios, "safe": safe},
             )
+    for env_id, scene in MULTIAGENT_SCENES.items():
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=MULTIAGENT_ENTRY_POINT, kwargs={"scene": scene})

@@ -63,6 +63,12 @@ def format_evaluations(rows: list[dict[str, Any]], episodes: int, seed: int, sam
     return title + "\n" + format_table(["policy", "return (mean ± std)", *(label for _, label, _ in columns)], body)
 
 
+# multi-agent scenes (drivelab.training.collection.scene_evaluation): key, label, format
+SCENE_METRICS = (("agent_episodes", "cars' episodes", "{:.0f}"), ("live_agents", "cars on the road (mean)", "{:.1f}"),
+                 ("crashes_per_episode", "crashes per scene episode", "{:.2f}"),
+                 ("efficiency", "efficiency ((arrived - failed) / 1000 steps)", "{:.2f}"))
+
+
 def format_evaluation(summary: dict[str, Any], env_id: str, what: str) -> str:
     """One evaluation, a metric a line: return, episode length, the driving metrics the env
     reports, its cost (episode cost, cost rate and the cost terms), the mean |CTE| and the reward terms."""
@@ -74,4 +80,5 @@ def format_evaluation(summary: dict[str, Any], env_id: str, what: str) -> str:
     if "mean_abs_cte" in summary:
         rows.append(["mean |CTE|", f"{summary['mean_abs_cte']:.3f} m"])
     rows += [[key, f"{value:.2f}"] for key, value in summary.items() if key.startswith("reward/")]
+    rows += [[label, fmt.format(summary[key])] for key, label, fmt in SCENE_METRICS if key in summary]
     return f"evaluation of {what} on {env_id}: {summary['episodes']} episodes\n" + format_table(None, rows, indent="  ")

@@ -32,8 +32,10 @@ from tqdm.auto import tqdm
 
 from drivelab.config import EvalConfig
 from drivelab.envs import EnvConfig, make_vector_env
+from drivelab.envs.registration import is_multiagent
 from drivelab.envs.supervised import SupervisedVectorEnv
 from drivelab.errors import DrivelabError, kill_point
+from drivelab.training.collection.scene_evaluation import SceneResult, play_scenes
 from drivelab.training.collection.worker_rollouts import EpisodesInWorker
 from drivelab.training.outputs.episodes import EpisodeTracker
 from drivelab.training.outputs.video import Recorder
@@ -187,13 +189,19 @@ def plays_in_workers(env_cfg: EnvConfig, policy, deterministic: bool, recorder=N
 
 
 def play(env_cfg: EnvConfig, policy, episodes: int, seed: int = 0, deterministic: bool = True,
-         wrapper=None, recorder=None, progress: str | None = None) -> EvalResult:
+         wrapper=None, recorder=None, progress: str | None = None) -> EvalResult | SceneResult:
     """``episodes`` episodes of ``policy`` on a vector env built from ``env_cfg`` (then closed):
     inside the env workers where :func:`plays_in_workers` says so, else stepped from this process;
     with a ``recorder``, the envs render ``rgb_array`` frames for it. Sampled actions
     (``deterministic=False``) come from torch's generator seeded with ``seed``, forked so that the
     caller's generator is left as it was: the same seed gives the same episodes. ``progress`` (a
-    label, e.g. the checkpoint) shows the episodes done, and the time left, on a bar (stderr)."""
+    label, e.g. the checkpoint) shows the episodes done, and the time left, on a bar (stderr).
+    On a multi-agent scene the policy drives every car and ``episodes`` counts scene episodes
+    (:func:`drivelab.training.collection.scene_evaluation.play_scenes`)."""
+    if is_multiagent(env_cfg.id):
+        if wrapper is not None:
+            raise DrivelabError(f"the reference policies drive one car; '{env_cfg.id}' is a multi-agent scene")
+        return play_scenes(env_cfg, policy, episodes, seed, deterministic, recorder, progress)
     in_workers = plays_in_workers(env_cfg, policy, deterministic, recorder)
     if in_workers:
         wrapper = functools.partial(EpisodesInWorker, inner=wrapper)

@@ -166,6 +166,40 @@ class ActorCritic(nn.Module):
         return self.actor.deterministic_action(self.prepare(obs))
 
 
+class MeanFieldActorCritic(ActorCritic):
+    """A decentralised actor pi(a | o_i) and a centralised critic V(o_i, mean of the neighbours' o_j)
+    (MAPPO, Yu et al. 2022, with the mean-field critic input of CoPO's CCPPO, Peng et al. 2021).
+
+    The critic's input, the *joint* observation, is ``(B, 2 D)``: the car's own observation, then
+    the mean observation of the cars within a radius (zeros without neighbours). Acting, evaluation
+    and export use the actor alone, on the car's own ``(B, D)`` observation: every car still drives
+    from what it sees. With ``obs_norm`` both halves are standardised by the own observations'
+    running statistics (the mean of standardised observations is the standardised mean).
+    """
+
+    def __init__(self, obs_space: gym.Space, act_space: gym.Space, hidden: Sequence[int] = (64, 64),
+                 act: str = "tanh", log_std_init: float = 0.0, obs_norm: bool = False):
+        super().__init__(obs_space, act_space, hidden, act, log_std_init, obs_norm, critic=False)
+        self.obs_dim = int(obs_space.shape[0])
+        joint = gym.spaces.Box(np.concatenate([obs_space.low, obs_space.low]),
+                               np.concatenate([obs_space.high, obs_space.high]), dtype=obs_space.dtype)
+        self.critic = _value_net(joint, hidden, act)
+
+    def prepare_joint(self, joint: torch.Tensor) -> torch.Tensor:
+        if self.obs_rms is None:
+            return joint
+        own, neighbours = joint[..., :self.obs_dim], joint[..., self.obs_dim:]
+        return torch.cat([self.obs_rms.normalize(own.float()), self.obs_rms.normalize(neighbours.float())], dim=-1)
+
+    def value(self, joint: torch.Tensor) -> torch.Tensor:
+        """(B,) V of ``(B, 2 D)`` joint observations."""
+        return self.critic(self.prepare_joint(joint)).squeeze(-1)
+
+    def distribution_and_value(self, joint: torch.Tensor) -> tuple[Distribution, torch.Tensor]:
+        """pi(.|own observation) and the (B,) values of ``(B, 2 D)`` joint observations."""
+        return self.distribution(joint[..., :self.obs_dim]), self.value(joint)
+
+
 def _value_net(obs_space: gym.Space, hidden: Sequence[int], act: str) -> nn.Module:
     """An encoder and a linear head: (B, *obs_shape) -> (B, 1)."""
     encoder = make_encoder(obs_space, hidden, act)

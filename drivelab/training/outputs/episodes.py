@@ -107,7 +107,7 @@ class EpisodeTracker:
             episode = Episode(env, float(self.running_return[env]), int(self.running_length[env]), episode_info(source, i))
             ended.append(episode)
             if counted is None or counted[i]:
-                self._add(episode)
+                self.add(episode)
             self.running_return[env] = 0.0
             self.running_length[env] = 0
         return ended
@@ -117,7 +117,8 @@ class EpisodeTracker:
         self.running_return[mask] = 0.0
         self.running_length[mask] = 0
 
-    def _add(self, episode: Episode) -> None:
+    def add(self, episode: Episode) -> None:
+        """Count a finished episode (for the multi-agent collector, which tracks each car itself)."""
         self.returns.append(episode.ret)
         self.lengths.append(episode.length)
         for name, value in episode.metrics.items():

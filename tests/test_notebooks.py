@@ -1,0 +1,31 @@
+"""The course's notebooks (notebooks/*.py, jupytext percent format) run top to bottom at their
+quick budget (``DRIVELAB_NOTEBOOK_BUDGET=quick``), each in a fresh Jupyter kernel, as a student
+would run them; any error in any cell fails the test."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jupytext
+import pytest
+from nbclient import NotebookClient
+
+NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.py"))
+
+
+def test_there_are_notebooks():
+    assert NOTEBOOKS
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_notebook_runs_top_to_bottom_at_its_quick_budget(path, monkeypatch, tmp_path):
+    monkeypatch.setenv("DRIVELAB_NOTEBOOK_BUDGET", "quick")
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    notebook = jupytext.read(path)
+    first = notebook.cells[0]
+    assert first.cell_type == "markdown" and "seed lesson" in first.source and "result it reproduces" in first.source
+    NotebookClient(notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
+    errors = [out for cell in notebook.cells if cell.cell_type == "code" for out in cell.get("outputs", [])
+              if out.get("output_type") == "error"]
+    assert errors == [], errors
