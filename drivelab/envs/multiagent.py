@@ -214,7 +214,7 @@ class AgentSlots(gym.Env):
     the observation is the new car's, ``agent_final_obs`` the old one's.
     """
 
-    metadata = {"render_modes": ["rgb_array"]}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}  # a MetaDrive step is 0.1 s
 
     def __init__(self, scene: str | ParallelEnv = "Intersection", num_agents: int | None = None,
                  render_mode: str | None = None, **config: Any):
