@@ -12,7 +12,8 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 from drivelab.cli import main
-from drivelab.envs.multiagent import AgentSlots, MultiAgentDrive
+from drivelab.envs.multiagent import SCENES, AgentSlots, MultiAgentDrive
+from drivelab.envs.registration import MULTIAGENT_SCENES
 from drivelab.training.collection.agents import agent_advantages, mean_field
 from drivelab.training.outputs.checkpoint import load_checkpoint
 from flaky_env import importable_env
@@ -25,6 +26,11 @@ def _cli(capsys, *args):
         main([str(a) for a in args])
     out, err = capsys.readouterr()
     return stop.value.code, out, err
+
+
+def test_every_registered_scene_id_names_a_scene():
+    """The ids (drivelab.envs.registration, imported without MetaDrive) and the scenes agree."""
+    assert sorted(MULTIAGENT_SCENES.values()) == sorted(SCENES)
 
 
 def test_a_metadrive_scene_passes_pettingzoo_parallel_api_test():

@@ -73,6 +73,7 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
     """
     env_id = _check_id(cfg.id)
     in_worker = multiprocessing.parent_process() is not None
+    kill_tested = in_worker and os.environ.get("DRIVELAB_KILL_AT", "").startswith("env-worker")
     if in_worker:
         # In an env worker, Ctrl-C is the trainer's to handle: it checkpoints and closes the
         # workers. (SIGTERM stays fatal: the supervisor terminates hung workers with it.)
@@ -85,7 +86,7 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
         os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
     env = _make_base_env(cfg.id, env_id, kwargs, render_mode)
     if is_multiagent(env_id):  # agent slots: MetaDrive's own settings only (EnvConfig refuses the wrappers)
-        env = KillPointInWorker(env) if in_worker and os.environ.get("DRIVELAB_KILL_AT", "").startswith("env-worker") else env
+        env = KillPointInWorker(env) if kill_tested else env
         return wrapper(env) if wrapper is not None else env
     env = CostSignal(env, cfg.cost)  # silent on an env that reports no cost and has no env.cost terms
     if cfg.scenario_replay:
@@ -96,7 +97,7 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
             task_shaping.replace_terms(cfg.reward)
         else:
             env = RewardShaping(env, cfg.reward)
-    if in_worker and os.environ.get("DRIVELAB_KILL_AT", "").startswith("env-worker"):
+    if kill_tested:
         env = KillPointInWorker(env)
     if cfg.action_grid:
         steering_bins, throttle_bins = parse_grid(cfg.action_grid)
