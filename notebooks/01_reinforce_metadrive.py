@@ -27,7 +27,7 @@
 # route completion climbs from the random policy's few percent. Measured at the full budget
 # (`BUDGET = "full"`: 60,000 env steps per run, two runs, about 10 minutes on two cores):
 # see the table at the end of `docs/course.md`, which records the numbers and the commit.
-# The quick budget (2,000 steps per run; what CI runs) shows the machinery, not learning.
+# The quick budget (1,000 steps per run; what CI runs) shows the machinery, not learning.
 
 # %%
 import os
@@ -45,8 +45,8 @@ from drivelab.training.outputs.plots import read_metrics
 from drivelab.training.outputs.statistics import rolling_mean
 
 BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (a minute) or "full" (about 10 minutes)
-STEPS = {"quick": 2_000, "full": 60_000}[BUDGET]
-BATCH_STEPS = {"quick": 1_000, "full": 4_000}[BUDGET]  # env steps of whole episodes per gradient step
+STEPS = {"quick": 1_000, "full": 60_000}[BUDGET]
+BATCH_STEPS = {"quick": 500, "full": 4_000}[BUDGET]  # env steps of whole episodes per gradient step
 ENT_COEF = 0.01  # the entropy bonus's weight (the shipped config has none)
 RUNS = Path("runs") / "lesson1"
 

@@ -85,8 +85,9 @@ print("A2C, last logged return (mean of recent episodes):", round(a2c.metrics["e
 #
 # How good is each lambda's estimate of the value of a start state? LunarLander's reset takes a
 # seed: every episode reset with the same seed starts from the same state (terrain and initial
-# push). So for a few start states we play a group of episodes each with the trained A2C policy's
-# sampled actions; the mean discounted return of a group estimates V(s_0) without bias.
+# push). So for a few start states we play two groups of episodes each with the trained A2C
+# policy's sampled actions: the mean discounted return of the first group estimates V(s_0) without
+# bias, and the second group's episodes are the batch that each lambda estimates it from.
 #
 # The critic here is deliberately simple and imperfect, a linear fit of the returns on the
 # observation (fitted on other episodes), as critics early in training are. For each episode and
@@ -135,8 +136,9 @@ lambdas = np.array([0.0, 0.5, 0.8, 0.9, 0.95, 0.99, 1.0])
 estimates = np.zeros((START_STATES, EPISODES_EACH, len(lambdas)))  # lambda-return estimates of V(s_0)
 truth = np.zeros(START_STATES)
 for s in range(START_STATES):
+    # V(s_0) from a second, independent group of episodes: the estimates below never see them
+    truth[s] = np.mean([discounted(play(seed=s)[1])[0] for _ in range(EPISODES_EACH)])
     episodes = [play(seed=s) for _ in range(EPISODES_EACH)]
-    truth[s] = np.mean([discounted(r)[0] for _, r, _ in episodes])
     for e, (observations, rewards, terminated) in enumerate(episodes):
         values = critic(observations)                      # (T+1,)
         T = len(rewards)
@@ -151,7 +153,7 @@ for s in range(START_STATES):
 bias = np.abs(estimates.mean(1) - truth[:, None]).mean(0)   # (lambdas,) mean over start states
 spread = estimates.std(1).mean(0)                          # (lambdas,)
 fig, ax = plt.subplots(figsize=(7, 3.6))
-ax.plot(lambdas, bias, "o-", label="|bias|: |group mean - V(s0)|")
+ax.plot(lambdas, bias, "o-", label="|bias|: |mean estimate - V(s0)|")
 ax.plot(lambdas, spread, "s-", label="spread: std within a group")
 ax.set_xlabel("lambda")
 ax.set_ylabel("discounted return")
@@ -161,8 +163,8 @@ for lam, b, sd in zip(lambdas, bias, spread):
     print(f"lambda {lam:4.2f}: |bias| {b:7.2f}   std {sd:7.2f}")
 
 # %% [markdown]
-# At lambda = 1 the group mean of the estimates is the group's mean return: no bias by
-# construction, and the most spread. Lower lambdas lean on the critic: less spread, more bias
+# At lambda = 1 each estimate is the episode's own discounted return: no bias (what remains is
+# the noise of two finite groups), and the most spread. Lower lambdas lean on the critic: less spread, more bias
 # (the linear critic is far from V). drivelab's recipes use 0.95 (PPO) and 1.0 (A2C's
 # LunarLander recipe, `a2c.gae_lambda`).
 #

@@ -28,7 +28,7 @@
 # **The result it reproduces.** SAC learns to keep its lane: the mean |CTE| falls and the route
 # driven grows over training. Measured at the full budget (`BUDGET = "full"`: 30,000 env steps,
 # about 10 minutes on two cores): the numbers and the commit are in the table at the end of
-# `docs/course.md`. The quick budget (what CI runs, about a minute) runs every cell on 1,500 steps.
+# `docs/course.md`. The quick budget (what CI runs, about a minute) runs every cell on 1,000 steps.
 
 # %%
 import json
@@ -44,14 +44,14 @@ import numpy as np
 from IPython.display import Image, display
 
 import drivelab
-from drivelab.envs.config import EnvConfig
+from drivelab.envs import filters
 from drivelab.training.outputs.plots import read_metrics
 from drivelab.training.outputs.statistics import rolling_mean
 
 BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (a minute) or "full" (about 10 minutes)
-STEPS = {"quick": 1_500, "full": 30_000}[BUDGET]
+STEPS = {"quick": 1_000, "full": 30_000}[BUDGET]
 HEAT_UP = {"quick": 500, "full": 2_000}[BUDGET]        # random actions before the first update
-EVAL_EVERY = {"quick": 750, "full": 5_000}[BUDGET]     # an evaluation period every this many steps
+EVAL_EVERY = {"quick": 500, "full": 5_000}[BUDGET]     # an evaluation period every this many steps
 RUNS = Path("runs") / "lesson4"
 SHIPPED = Path(drivelab.__file__).with_name("configs")  # the configs that come with drivelab
 
@@ -71,22 +71,29 @@ def drivelab_cli(*args: str) -> None:
 # traffic over the last frames) shows what each does.
 
 # %%
-filters = [[], ["to_float"], ["to_float", {"crop": {"top": 12, "bottom": 12}}],
-           ["to_float", {"crop": {"top": 12, "bottom": 12}}, "sobel"],
-           ["to_float", {"crop": {"top": 12, "bottom": 12}}, "sobel", {"binarize": {"threshold": 0.1}}]]
-fig, axes = plt.subplots(1, len(filters), figsize=(15, 3.2))
-for ax, chain in zip(axes, filters):
-    env = drivelab.make_env(EnvConfig(id="drivelab/MetaDriveTopDown-v0", obs_filters=chain))
-    obs, _ = env.reset(seed=1000)
-    for _ in range(20):  # drive a little, so that the frames have history
-        obs, *_ = env.step(np.array([0.0, 0.5]))
-    env.close()
-    ax.imshow(obs[..., 0], cmap="gray")
-    ax.set_title(" + ".join(c if isinstance(c, str) else next(iter(c)) for c in chain) or "raw (uint8)", fontsize=8)
-    ax.set_xlabel(f"{obs.shape} {obs.dtype}", fontsize=8)
+env = drivelab.make_env("drivelab/MetaDriveTopDown-v0")
+obs, _ = env.reset(seed=1000)
+for _ in range(20):  # drive a little, so that the frames have history
+    obs, *_ = env.step(np.array([0.0, 0.5]))
+env.close()
+# The functions behind env.obs_filters, applied in turn to that observation:
+stages = {"raw (uint8)": obs}
+stages["to_float"] = filters.to_float(obs)
+stages["+ crop"] = filters.crop(stages["to_float"], top=12, bottom=12)
+stages["+ sobel"] = filters.sobel(stages["+ crop"])
+stages["+ binarize"] = filters.binarize(stages["+ sobel"], threshold=0.1)
+fig, axes = plt.subplots(1, len(stages), figsize=(15, 3.2))
+for ax, (name, image) in zip(axes, stages.items()):
+    ax.imshow(image[..., 0], cmap="gray")
+    ax.set_title(name, fontsize=9)
+    ax.set_xlabel(f"{image.shape} {image.dtype}", fontsize=8)
 plt.show()
 
 # %% [markdown]
+# In a config the same chain is one line, applied to every observation the agent sees:
+# `env: {id: drivelab/MetaDriveTopDown-v0, obs_filters: [to_float, {crop: {top: 12, bottom: 12}},
+# sobel, {binarize: {threshold: 0.1}}]}`; the observation space follows (here 60 x 84 x 5 floats).
+#
 # The rest of the lesson steers from MetaDrive's state vector (lidar, the car's state, the road
 # ahead), which SAC learns from in minutes on a CPU; an image agent (`algo: sac` with
 # `drivelab/MetaDriveTopDown-v0` and these filters) takes hours.

@@ -29,3 +29,14 @@ def test_notebook_runs_top_to_bottom_at_its_quick_budget(path, monkeypatch, tmp_
     errors = [out for cell in notebook.cells if cell.cell_type == "code" for out in cell.get("outputs", [])
               if out.get("output_type") == "error"]
     assert errors == [], errors
+
+
+def test_every_notebook_is_a_page_of_the_course():
+    """The site renders each notebook (mkdocs.yml's nav, through the docs/notebooks link) and the
+    course's overview names it, with the result its full budget measured."""
+    mkdocs = (NOTEBOOKS[0].parents[1] / "mkdocs.yml").read_text()
+    course = (NOTEBOOKS[0].parents[1] / "docs" / "course.md").read_text()
+    assert (NOTEBOOKS[0].parents[1] / "docs" / "notebooks").resolve() == NOTEBOOKS[0].parent
+    for path in NOTEBOOKS:
+        assert f"notebooks/{path.name}" in mkdocs, f"{path.name} is not in mkdocs.yml's nav"
+        assert f"notebooks/{path.name}" in course, f"docs/course.md does not name {path.name}"
