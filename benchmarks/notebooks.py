@@ -7,6 +7,8 @@ its wall time and the text it printed: what the notebooks' first cells and docs/
 Each notebook runs in a fresh Jupyter kernel (as tests/test_notebooks.py does) in its own folder
 under --work (runs, videos and plots stay there); the executed notebook, outputs included, is
 saved there as NAME.ipynb. A notebook that fails is recorded with its error, and the next runs.
+With --only and an existing --out, the other notebooks' entries in that file are kept: each entry
+records the commit it ran at.
 """
 
 from __future__ import annotations
@@ -55,7 +57,20 @@ def run_notebook(path: Path, budget: str, work: Path) -> dict:
     seconds = time.perf_counter() - started
     nbformat.write(notebook, folder / f"{path.stem}.ipynb")
     return {"notebook": str(path.relative_to(REPO)), "seconds": round(seconds, 1), "error": error,
-            "printed": printed_text(notebook)}
+            "commit": provenance()["commit"], "printed": printed_text(notebook)}
+
+
+def kept_entries(out: Path | None, budget: str, rerun: list[Path]) -> list[dict]:
+    """The entries of an earlier results file at the same budget for notebooks not run now (each
+    with the commit it ran at: its own, else the file's)."""
+    if out is None or not out.is_file():
+        return []
+    earlier = json.loads(out.read_text())
+    if earlier.get("budget") != budget:
+        return []
+    names = {str(p.relative_to(REPO)) for p in rerun}
+    return [{**entry, "commit": entry.get("commit", earlier["provenance"]["commit"])}
+            for entry in earlier["notebooks"] if entry["notebook"] not in names]
 
 
 def main() -> None:
@@ -70,6 +85,7 @@ def main() -> None:
     paths = [p for p in paths if not args.only or p.stem.startswith(tuple(args.only))]
     if not paths:
         sys.exit(f"--only: no notebook in notebooks/ starts with {' or '.join(args.only)}")
+    kept = kept_entries(args.out, args.budget, paths)
     results = []
     for path in paths:
         print(f"== {path.stem} at the {args.budget} budget", flush=True)
@@ -78,7 +94,8 @@ def main() -> None:
               flush=True)
         if args.out:  # after each notebook, so that a killed run keeps what it measured
             args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(json.dumps({"budget": args.budget, "notebooks": results,
+            entries = sorted(kept + results, key=lambda entry: entry["notebook"])
+            args.out.write_text(json.dumps({"budget": args.budget, "notebooks": entries,
                                             "provenance": provenance(started)}, indent=1) + "\n")
     for r in results:
         print(f"\n## {r['notebook']}: {r['seconds']:.0f} s{', ERROR ' + r['error'] if r['error'] else ''}")
