@@ -166,6 +166,15 @@ def build_parser(train_epilog: str | None = None) -> argparse.ArgumentParser:
     export.add_argument("path", help="run directory, checkpoint directory, or RUN/best")
     export.add_argument("--format", default="onnx", choices=("onnx", "torchscript"))
     export.add_argument("--out", required=True, help="output directory (policy.onnx or policy.pt, and policy.json)")
+    demos = sub.add_parser("demos", help="record a trained policy's transitions as prior data for an off-policy "
+                                         "learner (its prior_data)")
+    demos.add_argument("policy", help="run directory, checkpoint directory, RUN/best or a shipped driver")
+    demos.add_argument("--config", help="the learner's config, whose env the policy plays (default: the policy's own env)")
+    demos.add_argument("--steps", type=int, required=True, help="env steps to record")
+    demos.add_argument("--out", required=True, help="the demonstration file (.safetensors)")
+    demos.add_argument("--seed", type=int, default=0, help="seeds the envs' resets")
+    demos.add_argument("--stochastic", action="store_true", help="sampled actions instead of the deterministic ones")
+    demos.add_argument("--no-progress", action="store_true")
     _reward_parser(sub)
     _sweep_parser(sub)
     return parser
@@ -409,6 +418,19 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_demos(args: argparse.Namespace) -> int:
+    from drivelab import api
+    from drivelab.tools.demonstrations import record_demonstrations
+
+    policy = api.load(args.policy)
+    env_cfg = api.train_config({}, config=args.config).env if args.config else policy.config.env
+    path = record_demonstrations(policy, env_cfg, args.steps, args.out, seed=args.seed,
+                                 deterministic=not args.stochastic, progress=not args.no_progress)
+    print(f"wrote {path}: {args.steps:,}+ transitions of {args.policy} on {env_cfg.id}; "
+          f"use it with --<algo>.prior_data {path}")
+    return 0
+
+
 def cmd_configs() -> int:
     from drivelab.config import read_yaml, shipped_configs
 
@@ -527,7 +549,7 @@ def main(argv: list[str] | None = None) -> None:
         else:
             if unknown:
                 parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-            code = {"eval": cmd_eval, "reward": cmd_reward, "export": cmd_export, "plot": cmd_plot, "report": cmd_report, "sweep": cmd_sweep, "configs": lambda a: cmd_configs(), "models": lambda a: cmd_models()}.get(
+            code = {"eval": cmd_eval, "reward": cmd_reward, "export": cmd_export, "demos": cmd_demos, "plot": cmd_plot, "report": cmd_report, "sweep": cmd_sweep, "configs": lambda a: cmd_configs(), "models": lambda a: cmd_models()}.get(
                 args.command, lambda a: cmd_envs())(args)
     except TrainingCrashed as exc:  # the traceback is in RUN/error.log
         _print_error(exc, exc.__cause__, args.debug)

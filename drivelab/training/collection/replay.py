@@ -29,6 +29,7 @@ from drivelab.training.collection.exploration import Exploration
 from drivelab.training.collection.worker_rollouts import ActorInWorker
 from drivelab.training.learning.hyperparams import OffPolicyParams
 from drivelab.training.learning.offpolicy_nets import OffPolicyAgent
+from drivelab.training.learning.prior_data import PriorData, mixed_batch, prior_rows
 from drivelab.training.learning.replay_buffer import ReplayBatch, ReplayBuffer
 from drivelab.training.outputs.checkpoint import Checkpoint
 from drivelab.training.outputs.episodes import stack_infos, step_costs
@@ -64,6 +65,8 @@ class ReplayCollector:
                                    n_step=hp.n_step, num_envs=self.num_envs, costs=costs,
                                    cost_gamma=getattr(hp, "cost_gamma", None))
         self.sample_rng = np.random.default_rng([seed, 1])
+        self.prior: PriorData | None = None   # the demonstrations mixed into every batch (start)
+        self._costs = costs
         self.hp, self.run, self.step_timeout = hp, run, env_cfg.step_timeout
         self.steps = run.step                 # env steps stored (run.step after this collector's last call)
         self.obs = None
@@ -97,6 +100,7 @@ class ReplayCollector:
         self.exploration = exploration
         everyone = np.ones(self.num_envs, bool)
         trainer = (checkpoint.state.get("trainer") or {}) if checkpoint is not None else {}
+        self._start_prior(checkpoint, trainer)
         if "replay" not in trainer:
             # A fresh run, or one resumed from its step-0 checkpoint, which is saved before the
             # collector exists: the RNGs are as the fresh run had them, so it starts the same way.
@@ -114,6 +118,20 @@ class ReplayCollector:
         seeds = [int(seed) if again else next(new_seeds) for seed, again in zip(old_seeds, fresh)]
         self._reset(everyone, seeds)
 
+    def _start_prior(self, checkpoint: Checkpoint | None, trainer: dict) -> None:
+        """The prior data: the checkpoint's own copy on resume (exact, and the file may be gone),
+        else the config's file, checked against the env's layout; logged once (prior/*)."""
+        hp = self.hp
+        if hp.prior_data is None or hp.prior_share == 0:
+            return
+        gammas = {"device": self.run.device, "gamma": hp.gamma, "cost_gamma": getattr(hp, "cost_gamma", None)}
+        if "prior" in trainer:
+            self.prior = PriorData.from_state(checkpoint.tensors, trainer["prior"], **gammas)
+        else:
+            self.prior = PriorData.load(hp.prior_data, self.obs_space, self.act_space, costs=self._costs, **gammas)
+        self.run.log({"prior/transitions": float(self.prior.size),
+                      "prior/env_steps": float(self.prior.about.get("env_steps", self.prior.size))})
+
     def _reset(self, mask: np.ndarray, seeds: list[int | None]) -> None:
         with self.run.timing.env:
             obs, _ = self.envs.reset(seed=seeds, options={"reset_mask": mask})
@@ -124,9 +142,14 @@ class ReplayCollector:
     def state(self) -> tuple[dict[str, torch.Tensor], dict]:
         """(tensors, JSON state) for a checkpoint: the replay buffer, the sampling RNG, the seeds."""
         tensors, meta = self.buffer.state()
+        if self.prior is not None:
+            prior_tensors, prior_meta = self.prior.state()
+            tensors = {**tensors, **prior_tensors}
         state = {"replay": meta, "sample_rng": self.sample_rng.bit_generator.state, "updates": self.updates,
                  "updates_owed": self._updates_owed, "reset_seeds": self._reset_seeds.tolist(),
                  "fresh": self._fresh.tolist(), "exploration": self.exploration.state()}
+        if self.prior is not None:
+            state["prior"] = prior_meta
         return tensors, state
 
     def obs_tensor(self) -> torch.Tensor:
@@ -147,14 +170,18 @@ class ReplayCollector:
 
     def batches(self) -> Iterator[ReplayBatch]:
         """The uniform batches for the ``utd`` gradient steps owed per env step stored by the
-        last :meth:`collect` (fractional counts carry over), once ``learning_starts`` steps are stored."""
+        last :meth:`collect` (fractional counts carry over), once ``learning_starts`` steps are
+        stored. With prior data, ``prior_share`` of each batch's rows are prior transitions (the
+        last rows), the rest replay."""
         if self.steps < self.hp.learning_starts:
             return
         self._updates_owed += self.hp.utd * self._new_steps
+        k = prior_rows(self.hp.batch_size, self.hp.prior_share) if self.prior is not None else 0
         while self._updates_owed >= 1:
             self._updates_owed -= 1
             self.updates += 1
-            yield self.buffer.sample(self.hp.batch_size, self.sample_rng)
+            batch = self.buffer.sample(self.hp.batch_size - k, self.sample_rng)
+            yield mixed_batch(batch, self.prior.sample(k, self.sample_rng)) if k else batch
 
     def close(self) -> None:
         self.envs.close()

@@ -88,8 +88,15 @@ class OffPolicyParams:
     act_in_workers: bool = False
     chunk_steps: int = 32             # with act_in_workers: steps each worker plays per weight update
     chunks_in_flight: int = 2         # with act_in_workers: chunks queued in each worker (the lag bound)
+    # Prior data (learning.prior_data): a demonstration file (drivelab demos) whose transitions make
+    # up prior_share of every batch, the rest drawn from the replay buffer (RLPD's symmetric
+    # sampling: 0.5). Saved in checkpoints, so that a resumed run needs the file no more.
+    prior_data: str | None = None
+    prior_share: float = 0.5
 
     def validate(self) -> None:
+        if not 0.0 <= self.prior_share < 1.0:
+            raise DrivelabError(f"config field 'prior_share' must be in [0, 1), got {self.prior_share}")
         if self.batch_size < 1 or self.buffer_size < self.batch_size:
             raise DrivelabError("config fields 'batch_size' and 'buffer_size' must satisfy 1 <= batch_size <= buffer_size")
         if self.chunk_steps < 1 or self.chunks_in_flight < 1:
