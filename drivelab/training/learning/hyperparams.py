@@ -88,11 +88,9 @@ class OffPolicyParams:
     act_in_workers: bool = False
     chunk_steps: int = 32             # with act_in_workers: steps each worker plays per weight update
     chunks_in_flight: int = 2         # with act_in_workers: chunks queued in each worker (the lag bound)
-    # Prior data (learning.prior_data): a demonstration file (drivelab demos) whose transitions make
-    # up prior_share of every batch, the rest drawn from the replay buffer (RLPD's symmetric
-    # sampling: 0.5). Saved in checkpoints, so that a resumed run needs the file no more.
-    prior_data: str | None = None
-    prior_share: float = 0.5
+    # Prior data (learning.prior_data; RLPD's symmetric sampling), saved in checkpoints.
+    prior_data: str | None = None     # a demonstration file (drivelab demos) mixed into every batch
+    prior_share: float = 0.5          # the share of each batch's rows drawn from prior_data (RLPD: 0.5)
 
     def validate(self) -> None:
         if not 0.0 <= self.prior_share < 1.0:
