@@ -2,6 +2,8 @@
 
     python benchmarks/drive_recipe.py --config configs/drive.yaml --seeds 0 1 2 3 4 --runs runs/drive \\
         --out benchmarks/results/drive_recipe.json
+    python benchmarks/drive_recipe.py --config configs/drive.yaml --steps 150000 ...   # a budget in decisions
+    ... --set sac.prior_data=demos.safetensors       # with prior data (drivelab demos), its cost in the JSON
 
 For each seed: train RUNS/seed_N with the config (its ``max_minutes`` bounds the training wall
 clock; an interrupted run resumes, a finished one is kept), then evaluate the run's own choice,
@@ -99,9 +101,16 @@ def outcomes(result) -> dict:
 
 
 def selection_curve(run_dir: Path) -> dict[str, list[float]]:
-    """Training minutes and success on the selection scenarios of the in-training evaluations."""
-    _, seconds, values = read_metrics(run_dir)["eval/success_rate"]  # seconds since the run's first log row
-    return {"minutes": [round(float(x), 2) for x in seconds / 60], "success": [float(x) for x in values]}
+    """Env steps (decisions), training minutes and success on the selection scenarios of the in-training evaluations."""
+    steps, seconds, values = read_metrics(run_dir)["eval/success_rate"]  # seconds since the run's first log row
+    return {"steps": [int(x) for x in steps], "minutes": [round(float(x), 2) for x in seconds / 60],
+            "success": [float(x) for x in values]}
+
+
+def prior_env_steps(run_dir: Path) -> int | None:
+    """The env steps that collecting the run's prior data cost (a run with ``prior_data``), else None."""
+    logged = read_metrics(run_dir).get("prior/env_steps")
+    return int(logged[2][-1]) if logged is not None else None
 
 
 def plot(table: dict, baselines: dict, algo: str, out: Path) -> None:
@@ -110,22 +119,26 @@ def plot(table: dict, baselines: dict, algo: str, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8, 4.8))
-    for seed, row in table.items():
-        curve = row.get("selection")   # rows kept from before the curves were saved have none
-        label = f"seed {seed}: selection scenarios 200-229" if curve else f"seed {seed} (curve not kept)"
-        line, = ax.plot(curve["minutes"] if curve else [], curve["success"] if curve else [], "o-", alpha=0.8,
-                        label=label)
-        ax.plot([row["minutes"]], [row["success_rate"]], "*", markersize=13, color=line.get_color())
-    for (name, summary), color in zip(baselines.items(), ("tab:green", "tab:gray")):
-        ax.axhline(summary["success_rate"], color=color, linestyle=":", label=f"{name} (held-out 0-199)")
-    ax.plot([], [], "*", color="black", label="chosen checkpoint on held-out 0-199, at the end of training")
-    ax.set_xlabel("training wall clock (minutes, 2 CPU cores)")
-    ax.set_ylabel("success rate")
-    ax.set_ylim(-0.02, 1.02)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left")
-    ax.set_title(f"drive recipe ({algo.upper()}, env workers acting) on MetaDrive's protocol")
+    # Against decisions (env steps: what transfers between machines) and against minutes (what
+    # this machine's CPU made of them, its gauge in the JSON).
+    fig, axes = plt.subplots(1, 2, figsize=(14, 4.8), sharey=True)
+    for ax, x, end, label in ((axes[0], "steps", "steps", "decisions (env steps)"),
+                              (axes[1], "minutes", "minutes", "training wall clock (minutes, 2 CPU cores)")):
+        for seed, row in table.items():
+            curve = row.get("selection")   # rows kept from before the curves were saved have none
+            has = bool(curve) and x in curve
+            name = f"seed {seed}: selection scenarios 200-229" if has else f"seed {seed} (curve not kept)"
+            line, = ax.plot(curve[x] if has else [], curve["success"] if has else [], "o-", alpha=0.8, label=name)
+            ax.plot([row[end]], [row["success_rate"]], "*", markersize=13, color=line.get_color())
+        for (name, summary), color in zip(baselines.items(), ("tab:green", "tab:gray")):
+            ax.axhline(summary["success_rate"], color=color, linestyle=":", label=f"{name} (held-out 0-199)")
+        ax.plot([], [], "*", color="black", label="chosen checkpoint on held-out 0-199, at the end of training")
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("success rate")
+    axes[0].set_ylim(-0.02, 1.02)
+    axes[0].legend(fontsize=7, loc="upper left")
+    fig.suptitle(f"drive recipe ({algo.upper()}, env workers acting) on MetaDrive's protocol")
     fig.tight_layout()
     fig.savefig(out, dpi=100)
     plt.close(fig)
@@ -139,10 +152,15 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/drive_recipe.json"))
     parser.add_argument("--skip-train", action="store_true", help="only evaluate the seeds already trained")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
-                        help="config overrides for an ablation arm, e.g. td3.noise_decay_steps=200000")
+                        help="config overrides for an ablation arm, e.g. td3.noise_decay_steps=200000 "
+                             "or sac.prior_data=demos.safetensors")
+    parser.add_argument("--steps", type=int, help="a budget in decisions (env steps) instead of the config's "
+                                                  "minutes: steps=N and no max_minutes")
     args = parser.parse_args()
     started = time.time()
     overrides = {key: parse_value(value) for key, _, value in (item.partition("=") for item in args.set)}
+    if args.steps is not None:
+        overrides.update({"steps": args.steps, "max_minutes": None})
     recipe = merge_overrides(read_yaml(args.config), overrides)
     previous = json.loads(args.out.read_text()) if args.out.is_file() else {}
     kept = previous.get("seeds", {}) if previous.get("recipe") == recipe else {}
@@ -159,7 +177,8 @@ def main() -> int:
         except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the run saved a checkpoint of this moment
             raise SystemExit(f"interrupted; the same command resumes seed {seed} in {run_dir}") from None
         row = {k: v for k, v in heldout(run_dir).items() if k != "per_episode"}
-        table[str(seed)] = {**trained, **row, "selection": selection_curve(run_dir)}
+        table[str(seed)] = {**trained, **row, "prior_env_steps": prior_env_steps(run_dir),
+                            "selection": selection_curve(run_dir)}
         print(json.dumps({"seed": seed, **{k: v for k, v in table[str(seed)].items() if k != "selection"}}), flush=True)
     baselines = previous.get("baselines") or {}
     for name in ("metadrive-expert", "random"):
