@@ -25,7 +25,7 @@
 #
 # **The result it reproduces.** REINFORCE learns to drive part of MetaDrive's 10 training roads:
 # route completion climbs from the random policy's few percent. Measured at the full budget
-# (`BUDGET = "full"`: 60,000 env steps per run, two runs, about 10 minutes on two cores):
+# (`BUDGET = "full"`: 60,000 env steps per run, two runs, about 12 minutes on two cores):
 # see the table at the end of `docs/course.md`, which records the numbers and the commit.
 # The quick budget (1,000 steps per run; what CI runs) shows the machinery, not learning.
 
@@ -44,7 +44,7 @@ from drivelab.envs.config import EnvConfig
 from drivelab.training.outputs.plots import read_metrics
 from drivelab.training.outputs.statistics import rolling_mean
 
-BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (a minute) or "full" (about 10 minutes)
+BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (a minute) or "full" (about 12 minutes)
 STEPS = {"quick": 1_000, "full": 60_000}[BUDGET]
 BATCH_STEPS = {"quick": 500, "full": 4_000}[BUDGET]  # env steps of whole episodes per gradient step
 ENT_COEF = 0.01  # the entropy bonus's weight (the shipped config has none)

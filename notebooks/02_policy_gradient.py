@@ -23,8 +23,8 @@
 # **The result it reproduces.** The three score-function estimators (whole return, reward-to-go,
 # reward-to-go minus a state-value baseline) average to the exact gradient, and their variance
 # falls in that order. Measured at the full budget (`BUDGET = "full"`: 20,000 episodes):
-# each mean within its standard error of the exact gradient (relative distance 5.8%, 5.9% and 1.3%),
-# variance per episode 1 : 0.87 : 0.19. The quick budget (2,000 episodes, seconds; what CI runs)
+# each mean within two standard errors of the exact gradient (relative distance 5.8%, 5.9% and
+# 1.3%; standard errors 3.4%, 3.2% and 1.5%), variance per episode 1 : 0.87 : 0.19. The quick budget (2,000 episodes, seconds; what CI runs)
 # gives the same variance ratios, with its means 7.8%, 5.7% and 2.3% away, each within its standard error.
 
 # %%
