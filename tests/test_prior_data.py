@@ -18,7 +18,7 @@ import drivelab.algos.sac as sac
 from drivelab.api import build_config, load, train
 from drivelab.errors import DrivelabError
 from drivelab.tools.demonstrations import record_demonstrations, to_unit_actions
-from drivelab.training.learning.prior_data import PriorData, read_about, save_demonstrations
+from drivelab.training.outputs.demonstrations import load_demonstrations, read_about, save_demonstrations
 from drivelab.training.outputs.checkpoint import list_checkpoints
 
 MARK = 5.0   # a reward Pendulum never pays (its rewards are <= 0): marks a prior row in a batch
@@ -92,15 +92,16 @@ def test_files_that_are_not_demonstrations_or_lack_costs_are_refused(tmp_path):
     space = gym.spaces.Box(-8.0, 8.0, (3,), np.float32)
     action = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
     with pytest.raises(DrivelabError, match="no such file"):
-        PriorData.load(tmp_path / "missing.safetensors", space, action)
+        load_demonstrations(tmp_path / "missing.safetensors", space, action)
     (tmp_path / "junk.safetensors").write_bytes(b"not safetensors")
     with pytest.raises(DrivelabError, match="is not a demonstration file"):
-        PriorData.load(tmp_path / "junk.safetensors", space, action)
+        load_demonstrations(tmp_path / "junk.safetensors", space, action)
     demos = _marked_demonstrations(tmp_path / "no_costs.safetensors")
     with pytest.raises(DrivelabError, match="lacks costs"):
-        PriorData.load(demos, space, action, costs=True)
-    assert PriorData.load(_marked_demonstrations(tmp_path / "costs.safetensors", with_costs=True), space, action,
-                          costs=True).size == 50
+        load_demonstrations(demos, space, action, costs=True)
+    rows, _ = load_demonstrations(_marked_demonstrations(tmp_path / "costs.safetensors", with_costs=True), space, action,
+                                  costs=True)
+    assert len(rows["costs"]) == 50
     with pytest.raises(DrivelabError, match="prior_share"):
         _pendulum(tmp_path / "r", 300, prior_share=1.0)
 

@@ -1,5 +1,5 @@
 """Record a reference policy's transitions as prior data for an off-policy learner
-(``drivelab demos``; :mod:`drivelab.training.learning.prior_data` reads the file).
+(``drivelab demos``; :mod:`drivelab.training.outputs.demonstrations` holds the file format).
 
 The policy (a run, a checkpoint or a shipped driver) plays the *learner's* env, as the learner's
 config builds it (reward terms, action repeat, observation filters), so that every stored row is
@@ -23,7 +23,7 @@ from drivelab.envs import make_vector_env
 from drivelab.envs.config import EnvConfig
 from drivelab.errors import DrivelabError
 from drivelab.tools.policies import TrainedPolicy, check_fits_env
-from drivelab.training.learning.prior_data import save_demonstrations
+from drivelab.training.outputs.demonstrations import save_demonstrations
 from drivelab.training.outputs.episodes import step_costs
 
 

@@ -32,6 +32,7 @@ from drivelab.training.learning.offpolicy_nets import OffPolicyAgent
 from drivelab.training.learning.prior_data import PriorData, mixed_batch, prior_rows
 from drivelab.training.learning.replay_buffer import ReplayBatch, ReplayBuffer
 from drivelab.training.outputs.checkpoint import Checkpoint
+from drivelab.training.outputs.demonstrations import load_demonstrations
 from drivelab.training.outputs.episodes import stack_infos, step_costs
 
 if TYPE_CHECKING:  # the collector calls the run's services; run/ sits above collection/
@@ -128,7 +129,8 @@ class ReplayCollector:
         if "prior" in trainer:
             self.prior = PriorData.from_state(checkpoint.tensors, trainer["prior"], **gammas)
         else:
-            self.prior = PriorData.load(hp.prior_data, self.obs_space, self.act_space, costs=self._costs, **gammas)
+            rows, about = load_demonstrations(hp.prior_data, self.obs_space, self.act_space, costs=self._costs)
+            self.prior = PriorData(rows, about, **gammas)
         self.run.log({"prior/transitions": float(self.prior.size),
                       "prior/env_steps": float(self.prior.about.get("env_steps", self.prior.size))})
 
