@@ -29,8 +29,7 @@
 # reach their destination climbs from 0. At the full budget (`BUDGET = "full"`: 40,960 scene steps,
 # some 1.2 million car decisions, about 15 minutes on two cores) 15.7% of the last 300 cars'
 # episodes arrived (0% until 20,480 steps), 52% crashed and 35% left the road (from 49% at the
-# start). That is early: `benchmarks/multiagent.py` trains 250,000 steps, and one such run reached
-# 36% at 105,000. Numbers and commit: `benchmarks/results/notebooks_full.json`. The quick budget
+# start). That is early: `benchmarks/multiagent.py` trains six times as many steps. Numbers and commit: `benchmarks/results/notebooks_full.json`. The quick budget
 # (what CI runs, about a minute) runs every cell on one iteration.
 
 # %%
