@@ -34,7 +34,6 @@
 # budget (what CI runs, about a minute) runs every cell on 1,000 steps.
 
 # %%
-import json
 import os
 import shutil
 import subprocess
@@ -128,7 +127,7 @@ display(Image(filename="cte_reward.png"))
 config = dict(
     env={"id": "drivelab/MetaDriveLaneFollow-v0", "num_envs": 2, "fixed_throttle": 0.3},
     sac={"learning_starts": HEAT_UP, "batch_size": 256, "hidden": [128, 128], "init_alpha": 0.05, "utd": 1.0},
-    eval={"every": EVAL_EVERY, "episodes": 4},
+    eval={"every": EVAL_EVERY, "episodes": {"quick": 2, "full": 4}[BUDGET]},
     track={"mlflow": True},
     checkpoint_every=EVAL_EVERY,
 )
@@ -181,13 +180,12 @@ plt.show()
 # ## The result, and the car on video
 #
 # The best checkpoint (chosen by the evaluation periods) on 10 roads it was neither trained nor
-# chosen on (the task's scenarios start at seed 1000; these start at 0), then one episode filmed.
+# chosen on (the task's scenarios start at seed 1000; these start at 0; `drivelab eval RUN/best
+# --env drivelab/MetaDriveLaneFollow-v0 --episodes 10` prints the same), then one episode filmed.
 
 # %%
-result = subprocess.run([sys.executable, "-m", "drivelab", "eval", str(RUNS / "sac" / "best"), "--env",
-                         "drivelab/MetaDriveLaneFollow-v0", "--episodes", {"quick": "2", "full": "10"}[BUDGET],
-                         "--seed", "0", "--json", "--no-progress"], check=True, capture_output=True, text=True)
-row = json.loads(result.stdout)
+row = drivelab.evaluate(drivelab.load(RUNS / "sac" / "best"), "drivelab/MetaDriveLaneFollow-v0",
+                        episodes={"quick": 2, "full": 10}[BUDGET], seed=0, num_envs=2)
 print(f"unseen roads: route completion {row['route_completion']:.1%}, mean |CTE| {row['mean_abs_cte']:.2f} m, "
       f"success {row['success_rate']:.0%}, out of road {row['out_of_road_rate']:.0%}")
 drivelab_cli("eval", str(RUNS / "sac" / "best"), "--episodes", "1", "--seed", "0", "--video", str(RUNS / "sac.gif"),

@@ -46,7 +46,8 @@ from drivelab.training.outputs.plots import read_metrics
 from drivelab.training.outputs.statistics import rolling_mean
 
 BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (a minute) or "full" (about 15 minutes)
-STEPS = {"quick": 256, "full": 40_960}[BUDGET]            # scene steps: one step moves every car
+STEPS = {"quick": 128, "full": 40_960}[BUDGET]            # scene steps: one step moves every car
+ROLLOUT = {"quick": 64, "full": 256}[BUDGET]              # steps per scene and iteration (the config's: 256)
 FILM_STEPS = {"quick": 30, "full": 400}[BUDGET]           # steps of the filmed scene
 RUN = "runs/lesson7/ippo"
 
@@ -91,7 +92,7 @@ print(open(os.path.join(os.path.dirname(drivelab.__file__), "configs", "ma_inter
 
 # %%
 result = drivelab.train(config="ma_intersection", steps=STEPS, seed=0, run_dir=RUN, progress=False,
-                        checkpoint_every=STEPS, log_every=min(5120, STEPS))
+                        checkpoint_every=STEPS, log_every=min(5120, STEPS), ippo={"num_steps": ROLLOUT})
 print({k: round(v, 3) for k, v in result.metrics.items() if k.startswith("episode/")})
 
 # %% [markdown]
