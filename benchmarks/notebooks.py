@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -44,7 +45,8 @@ def printed_text(notebook: nbformat.NotebookNode) -> list[str]:
 def run_notebook(path: Path, budget: str, work: Path) -> dict:
     """Execute one notebook at ``budget`` in ``work/<name>``; its seconds, printed text and error (None when it ran)."""
     folder = work / path.stem
-    folder.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(folder, ignore_errors=True)   # a notebook starts from an empty folder, as on a fresh clone
+    folder.mkdir(parents=True)
     notebook = jupytext.read(path)
     os.environ["DRIVELAB_NOTEBOOK_BUDGET"] = budget  # the kernel inherits the environment
     os.environ["MPLBACKEND"] = "Agg"

@@ -32,6 +32,7 @@
 
 # %%
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -50,6 +51,7 @@ STEPS = {"quick": 1_000, "full": 60_000}[BUDGET]
 BATCH_STEPS = {"quick": 500, "full": 4_000}[BUDGET]  # env steps of whole episodes per gradient step
 ENT_COEF = 0.01  # the entropy bonus's weight (the shipped config has none)
 RUNS = Path("runs") / "lesson1"
+shutil.rmtree(RUNS, ignore_errors=True)  # each run of the notebook starts afresh (runs/ holds its runs)
 
 
 def drivelab_cli(*args: str) -> None:

@@ -37,6 +37,7 @@
 
 # %%
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -55,6 +56,7 @@ BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (under a
 STEPS = {"quick": 16_000, "full": 300_000}[BUDGET]
 START_STATES, EPISODES_EACH = {"quick": (3, 6), "full": (8, 16)}[BUDGET]  # the GAE experiment's batch
 RUNS = Path("runs") / "lesson3"
+shutil.rmtree(RUNS, ignore_errors=True)  # each run of the notebook starts afresh (runs/ holds its runs)
 GAMMA = 0.99
 rng = np.random.default_rng(0)
 

@@ -55,6 +55,7 @@ STEPS = {"quick": 1_000, "full": 30_000}[BUDGET]
 HEAT_UP = {"quick": 500, "full": 2_000}[BUDGET]        # random actions before the first update
 EVAL_EVERY = {"quick": 500, "full": 5_000}[BUDGET]     # an evaluation period every this many steps
 RUNS = Path("runs") / "lesson4"
+shutil.rmtree(RUNS, ignore_errors=True)  # each run of the notebook starts afresh (runs/ holds its runs)
 SHIPPED = Path(drivelab.__file__).with_name("configs")  # the configs that come with drivelab
 
 

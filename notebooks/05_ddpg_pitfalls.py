@@ -38,6 +38,7 @@
 # %%
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -56,6 +57,7 @@ STEPS = {"quick": 1_000, "full": 15_000}[BUDGET]
 HEAT_UP = {"quick": 500, "full": 1_000}[BUDGET]
 EVAL = {"every": {"quick": 500, "full": 2_500}[BUDGET], "episodes": {"quick": 2, "full": 5}[BUDGET]}
 RUNS = Path("runs") / "lesson5"
+shutil.rmtree(RUNS, ignore_errors=True)  # each run of the notebook starts afresh (runs/ holds its runs)
 SHIPPED = Path(drivelab.__file__).with_name("configs")
 torch.manual_seed(0)
 

@@ -37,6 +37,7 @@
 
 # %%
 import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -51,6 +52,7 @@ BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (under a
 STEPS = {"quick": 8_192, "full": 65_536}[BUDGET]
 EPISODES = {"quick": 2, "full": 20}[BUDGET]  # SafeMetaDrive evaluation episodes per policy
 RUNS = "runs/lesson6"
+shutil.rmtree(RUNS, ignore_errors=True)  # each run of the notebook starts afresh (runs/ holds its runs)
 
 # %% [markdown]
 # ## Where the cost comes from

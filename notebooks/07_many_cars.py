@@ -34,6 +34,8 @@
 
 # %%
 import os
+import shutil
+from pathlib import Path
 
 import imageio.v2 as imageio
 import matplotlib.pyplot as plt
@@ -50,6 +52,7 @@ STEPS = {"quick": 128, "full": 40_960}[BUDGET]            # scene steps: one ste
 ROLLOUT = {"quick": 64, "full": 256}[BUDGET]              # steps per scene and iteration (the config's: 256)
 FILM_STEPS = {"quick": 30, "full": 400}[BUDGET]           # steps of the filmed scene
 RUN = "runs/lesson7/ippo"
+shutil.rmtree(Path(RUN).parent, ignore_errors=True)  # each run of the notebook starts afresh (runs/ holds its runs)
 
 # %% [markdown]
 # ## A scene of agents, through PettingZoo
