@@ -48,7 +48,8 @@ from drivelab.training.outputs.statistics import rolling_mean
 
 BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (a minute) or "full" (about 12 minutes)
 STEPS = {"quick": 1_000, "full": 60_000}[BUDGET]
-BATCH_STEPS = {"quick": 500, "full": 4_000}[BUDGET]  # env steps of whole episodes per gradient step
+BATCH_STEPS = {"quick": 500, "full": 4_000}[BUDGET]
+ENVS = {"quick": 1, "full": 2}[BUDGET]  # simulator processes (the quick budget saves starting a second)  # env steps of whole episodes per gradient step
 ENT_COEF = 0.01  # the entropy bonus's weight (the shipped config has none)
 RUNS = Path("runs") / "lesson1"
 shutil.rmtree(RUNS, ignore_errors=True)  # each run of the notebook starts afresh (runs/ holds its runs)
@@ -102,7 +103,7 @@ print(Path(drivelab.__file__).with_name("configs").joinpath("reinforce_metadrive
 
 # %%
 def train(advantage: str) -> Path:
-    result = drivelab.train(config="reinforce_metadrive", steps=STEPS, seed=0, run_dir=RUNS / advantage,
+    result = drivelab.train(config="reinforce_metadrive", steps=STEPS, seed=0, run_dir=RUNS / advantage, num_envs=ENVS,
                             checkpoint_every=STEPS, progress=False,
                             reinforce={"advantage": advantage, "batch_steps": BATCH_STEPS, "ent_coef": ENT_COEF})
     print(f"advantage={advantage}: {STEPS:,} steps, last logged route completion "
@@ -182,7 +183,7 @@ plt.show()
 
 # %%
 for label, path in (("normalize", run), ("rtg", run_rtg)):
-    row = drivelab.evaluate(drivelab.load(path), episodes={"quick": 2, "full": 10}[BUDGET])
+    row = drivelab.evaluate(drivelab.load(path), episodes={"quick": 1, "full": 10}[BUDGET])
     print(f"{label:9s} route completion {row['route_completion']:.1%}, success {row['success_rate']:.0%}, "
           f"return {row['return_mean']:.1f}")
 

@@ -33,7 +33,7 @@
 # GRPO's sampled policy flies better than its most likely action. PPO, which reuses each batch
 # for 10 epochs, lands at the same budget (`--config ppo_lunarlander`). Numbers and commit:
 # `benchmarks/results/notebooks_full.json`. The quick budget (what CI runs, under a minute) runs
-# every cell on 16,000 steps.
+# every cell on 8,000 steps.
 
 # %%
 import os
@@ -53,7 +53,7 @@ from drivelab.training.outputs.plots import read_metrics
 from drivelab.training.outputs.statistics import rolling_mean
 
 BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (under a minute) or "full" (about 4 minutes)
-STEPS = {"quick": 16_000, "full": 300_000}[BUDGET]
+STEPS = {"quick": 8_000, "full": 300_000}[BUDGET]
 START_STATES, EPISODES_EACH = {"quick": (3, 6), "full": (8, 16)}[BUDGET]  # the GAE experiment's batch
 RUNS = Path("runs") / "lesson3"
 shutil.rmtree(RUNS, ignore_errors=True)  # each run of the notebook starts afresh (runs/ holds its runs)

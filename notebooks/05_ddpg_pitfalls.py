@@ -33,7 +33,7 @@
 # -134; TD3 held -98 from 10,000 steps and SAC -97 from 7,500. The ONNX export drove an episode
 # at -126.7, its actions within 2e-6 of drivelab's. Numbers and commit:
 # `benchmarks/results/notebooks_full.json`. The quick budget (what CI runs, under a minute) runs
-# every cell on 1,000 steps.
+# every cell on 400 steps.
 
 # %%
 import json
@@ -53,9 +53,9 @@ import drivelab
 from drivelab.training.outputs.plots import read_metrics
 
 BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (under a minute) or "full" (about 8 minutes)
-STEPS = {"quick": 1_000, "full": 15_000}[BUDGET]
-HEAT_UP = {"quick": 500, "full": 1_000}[BUDGET]
-EVAL = {"every": {"quick": 500, "full": 2_500}[BUDGET], "episodes": {"quick": 2, "full": 5}[BUDGET]}
+STEPS = {"quick": 400, "full": 15_000}[BUDGET]
+HEAT_UP = {"quick": 200, "full": 1_000}[BUDGET]
+EVAL = {"every": {"quick": 200, "full": 2_500}[BUDGET], "episodes": {"quick": 1, "full": 5}[BUDGET]}
 RUNS = Path("runs") / "lesson5"
 shutil.rmtree(RUNS, ignore_errors=True)  # each run of the notebook starts afresh (runs/ holds its runs)
 SHIPPED = Path(drivelab.__file__).with_name("configs")
