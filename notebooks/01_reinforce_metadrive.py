@@ -39,7 +39,7 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
-from IPython.display import Image, display
+from IPython.display import Video, display
 
 import drivelab
 from drivelab.envs.config import EnvConfig
@@ -143,9 +143,9 @@ plt.show()
 # likely action) and records MetaDrive's top-down view.
 
 # %%
-video = RUNS / "agent.gif"
+video = RUNS / "agent.mp4"
 drivelab_cli("eval", str(run), "--episodes", "1", "--video", str(video), "--no-progress")
-display(Image(filename=str(video)))
+display(Video(str(video), embed=True))
 
 # %% [markdown]
 # ## What the variance of the gradient does

@@ -45,7 +45,7 @@ from pathlib import Path
 import gymnasium as gym
 import matplotlib.pyplot as plt
 import numpy as np
-from IPython.display import Image, display
+from IPython.display import Video, display
 
 import drivelab
 from drivelab.training.learning.returns import gae, group_relative_advantages
@@ -229,9 +229,9 @@ for label, run in (("A2C", a2c.run_dir), ("GRPO", grpo.run_dir)):
 
 # %%
 for label, run in (("a2c", a2c.run_dir), ("grpo", grpo.run_dir)):
-    video = RUNS / f"{label}.gif"
+    video = RUNS / f"{label}.mp4"
     drivelab_cli("eval", str(run), "--episodes", "1", "--seed", "100", "--video", str(video), "--no-progress")
-    display(Image(filename=str(video)))
+    display(Video(str(video), embed=True))
 
 # %% [markdown]
 # ## Exercises

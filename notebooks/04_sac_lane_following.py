@@ -43,7 +43,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import mlflow
 import numpy as np
-from IPython.display import Image, display
+from IPython.display import Image, Video, display
 
 import drivelab
 from drivelab.envs import filters
@@ -192,9 +192,9 @@ row = drivelab.evaluate(drivelab.load(chosen), "drivelab/MetaDriveLaneFollow-v0"
                         episodes={"quick": 1, "full": 10}[BUDGET], seed=0, num_envs=ENVS)
 print(f"unseen roads: route completion {row['route_completion']:.1%}, mean |CTE| {row['mean_abs_cte']:.2f} m, "
       f"success {row['success_rate']:.0%}, out of road {row['out_of_road_rate']:.0%}")
-drivelab_cli("eval", str(chosen), "--episodes", "1", "--seed", "0", "--video", str(RUNS / "sac.gif"),
+drivelab_cli("eval", str(chosen), "--episodes", "1", "--seed", "0", "--video", str(RUNS / "sac.mp4"),
              "--no-progress")
-display(Image(filename=str(RUNS / "sac.gif")))
+display(Video(str(RUNS / "sac.mp4"), embed=True))
 
 # %% [markdown]
 # ## Exercises

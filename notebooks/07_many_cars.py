@@ -40,7 +40,7 @@ from pathlib import Path
 import imageio.v2 as imageio
 import matplotlib.pyplot as plt
 import numpy as np
-from IPython.display import Image, display
+from IPython.display import Video, display
 
 import drivelab
 from drivelab.envs.multiagent import MultiAgentDrive
@@ -139,9 +139,9 @@ for _ in range(FILM_STEPS):
             outcomes[key] += 1
     frames.append(scene.render())
 scene.close()
-imageio.mimsave("scene.gif", frames[::2], duration=0.2, loop=0)
+imageio.mimsave("scene.mp4", frames, fps=10)
 print(f"{FILM_STEPS} steps: {outcomes}")
-display(Image(filename="scene.gif"))
+display(Video("scene.mp4", embed=True))
 
 # %% [markdown]
 # `drivelab eval RUN --episodes 5` plays whole scene episodes and reports the metrics over cars
