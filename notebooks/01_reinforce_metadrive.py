@@ -33,8 +33,6 @@
 # %%
 import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -42,6 +40,7 @@ import numpy as np
 from IPython.display import Video, display
 
 import drivelab
+from drivelab.cli import main as drivelab_main
 from drivelab.envs.config import EnvConfig
 from drivelab.training.outputs.plots import read_metrics
 from drivelab.training.outputs.statistics import rolling_mean
@@ -56,8 +55,13 @@ shutil.rmtree(RUNS, ignore_errors=True)  # each run of the notebook starts afres
 
 
 def drivelab_cli(*args: str) -> None:
-    """Run the `drivelab` command (the same as typing it in a terminal)."""
-    subprocess.run([sys.executable, "-m", "drivelab", *args], check=True)
+    """Run a `drivelab` command in this kernel: `drivelab_cli("eval", RUN)` does what `drivelab eval
+    RUN` does in a terminal, without starting Python, torch and the simulator again."""
+    try:
+        drivelab_main(list(args))
+    except SystemExit as stop:
+        if stop.code:
+            raise RuntimeError(f"drivelab {' '.join(args)} failed (exit status {stop.code})") from None
 
 
 # %% [markdown]

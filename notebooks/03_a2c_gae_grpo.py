@@ -38,8 +38,6 @@
 # %%
 import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -48,6 +46,7 @@ import numpy as np
 from IPython.display import Video, display
 
 import drivelab
+from drivelab.cli import main as drivelab_main
 from drivelab.training.learning.returns import gae, group_relative_advantages
 from drivelab.training.outputs.plots import read_metrics
 from drivelab.training.outputs.statistics import rolling_mean
@@ -62,8 +61,13 @@ rng = np.random.default_rng(0)
 
 
 def drivelab_cli(*args: str) -> None:
-    """Run the `drivelab` command (the same as typing it in a terminal)."""
-    subprocess.run([sys.executable, "-m", "drivelab", *args], check=True)
+    """Run a `drivelab` command in this kernel: `drivelab_cli("eval", RUN)` does what `drivelab eval
+    RUN` does in a terminal, without starting Python, torch and the simulator again."""
+    try:
+        drivelab_main(list(args))
+    except SystemExit as stop:
+        if stop.code:
+            raise RuntimeError(f"drivelab {' '.join(args)} failed (exit status {stop.code})") from None
 
 
 # %% [markdown]

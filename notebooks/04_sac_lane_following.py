@@ -36,8 +36,6 @@
 # %%
 import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -46,6 +44,7 @@ import numpy as np
 from IPython.display import Image, Video, display
 
 import drivelab
+from drivelab.cli import main as drivelab_main
 from drivelab.envs import filters
 from drivelab.training.outputs.plots import read_metrics
 from drivelab.training.outputs.statistics import rolling_mean
@@ -61,8 +60,13 @@ SHIPPED = Path(drivelab.__file__).with_name("configs")  # the configs that come 
 
 
 def drivelab_cli(*args: str) -> None:
-    """Run the `drivelab` command (the same as typing it in a terminal)."""
-    subprocess.run([sys.executable, "-m", "drivelab", *args], check=True)
+    """Run a `drivelab` command in this kernel: `drivelab_cli("eval", RUN)` does what `drivelab eval
+    RUN` does in a terminal, without starting Python, torch and the simulator again."""
+    try:
+        drivelab_main(list(args))
+    except SystemExit as stop:
+        if stop.code:
+            raise RuntimeError(f"drivelab {' '.join(args)} failed (exit status {stop.code})") from None
 
 
 # %% [markdown]

@@ -36,11 +36,11 @@
 # every cell on 400 steps.
 
 # %%
+import contextlib
+import io
 import json
 import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -50,6 +50,7 @@ import onnxruntime
 import torch
 
 import drivelab
+from drivelab.cli import main as drivelab_main
 from drivelab.training.outputs.plots import read_metrics
 
 BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (under a minute) or "full" (about 8 minutes)
@@ -63,9 +64,17 @@ torch.manual_seed(0)
 
 
 def drivelab_cli(*args: str, capture: bool = False) -> str:
-    """Run the `drivelab` command (the same as typing it in a terminal); its output if ``capture``."""
-    done = subprocess.run([sys.executable, "-m", "drivelab", *args], check=True, capture_output=capture, text=True)
-    return done.stdout
+    """Run a `drivelab` command in this kernel: `drivelab_cli("export", RUN, ...)` does what `drivelab
+    export RUN ...` does in a terminal, without starting Python, torch and the simulator again.
+    Returns what it printed if ``capture`` (else prints it)."""
+    printed = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(printed) if capture else contextlib.nullcontext():
+            drivelab_main(list(args))
+    except SystemExit as stop:
+        if stop.code:
+            raise RuntimeError(f"drivelab {' '.join(args)} failed (exit status {stop.code})") from None
+    return printed.getvalue()
 
 
 def train(name: str, algo: str, **section) -> Path:
