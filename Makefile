@@ -13,10 +13,12 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
+# --no-compile: pip would byte-compile all ~23,000 modules of torch, Ray, MLflow and MetaDrive
+# (over a minute on two cores); Python compiles the few thousand that are imported, once, on first use.
 $(VENV)/.installed: pyproject.toml | $(BIN)/python
 	@echo "== installing torch and drivelab's dependencies into $(VENV) (minutes, the first time; pip is --quiet) =="
-	$(BIN)/pip install --quiet "$(TORCH)"
-	$(BIN)/pip install --quiet -e ".[dev]"
+	$(BIN)/pip install --quiet --no-compile "$(TORCH)"
+	$(BIN)/pip install --quiet --no-compile -e ".[dev]"
 	@touch $@
 
 install: $(VENV)/.installed
