@@ -13,12 +13,14 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-# --no-compile: pip would byte-compile all ~23,000 modules of torch, Ray, MLflow and MetaDrive
-# (over a minute on two cores); Python compiles the few thousand that are imported, once, on first use.
+# pip byte-compiles the ~23,000 modules of torch, Ray, MLflow and MetaDrive on one core; compileall
+# does it on every core (a module written for a newer Python fails to compile, as under pip: ignored).
+# Left uncompiled, every fresh process (env workers, Ray workers) would compile what it imports.
 $(VENV)/.installed: pyproject.toml | $(BIN)/python
 	@echo "== installing torch and drivelab's dependencies into $(VENV) (minutes, the first time; pip is --quiet) =="
 	$(BIN)/pip install --quiet --no-compile "$(TORCH)"
 	$(BIN)/pip install --quiet --no-compile -e ".[dev]"
+	-$(BIN)/python -m compileall -q -j 0 $(VENV)/lib > /dev/null 2>&1
 	@touch $@
 
 install: $(VENV)/.installed
