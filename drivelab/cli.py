@@ -571,6 +571,19 @@ def main(argv: list[str] | None = None) -> None:
     sys.exit(code)
 
 
+def run(*args: str | os.PathLike) -> None:
+    """Run a drivelab command in this process: ``run("eval", RUN, "--episodes", "1")`` does what
+    ``drivelab eval RUN --episodes 1`` does in a terminal, for notebooks and scripts that have
+    Python, torch and the simulator loaded already. A command that fails (its message is on
+    stderr) raises RuntimeError instead of exiting."""
+    argv = [str(a) for a in args]
+    try:
+        main(argv)
+    except SystemExit as stop:
+        if stop.code:
+            raise RuntimeError(f"{shlex.join(['drivelab', *argv])} failed (exit status {stop.code})") from None
+
+
 def _print_error(message: object, exc: BaseException | None, debug: bool) -> None:
     """One line on stderr; with ``--debug`` (or DRIVELAB_DEBUG=1), the traceback above it."""
     if exc is not None and (debug or os.environ.get("DRIVELAB_DEBUG") == "1"):

@@ -40,28 +40,18 @@ import numpy as np
 from IPython.display import Video, display
 
 import drivelab
-from drivelab.cli import main as drivelab_main
+from drivelab.cli import run as drivelab_cli  # drivelab_cli("eval", RUN) is `drivelab eval RUN`, in this kernel
 from drivelab.envs.config import EnvConfig
 from drivelab.training.outputs.plots import read_metrics
 from drivelab.training.outputs.statistics import rolling_mean
 
 BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (a minute) or "full" (about 12 minutes)
 STEPS = {"quick": 1_000, "full": 60_000}[BUDGET]
-BATCH_STEPS = {"quick": 500, "full": 4_000}[BUDGET]
-ENVS = {"quick": 1, "full": 2}[BUDGET]  # simulator processes (the quick budget saves starting a second)  # env steps of whole episodes per gradient step
+BATCH_STEPS = {"quick": 500, "full": 4_000}[BUDGET]  # env steps of whole episodes per gradient step
+ENVS = {"quick": 1, "full": 2}[BUDGET]  # simulator processes (the quick budget saves starting a second)
 ENT_COEF = 0.01  # the entropy bonus's weight (the shipped config has none)
 RUNS = Path("runs") / "lesson1"
 shutil.rmtree(RUNS, ignore_errors=True)  # each run of the notebook starts afresh (runs/ holds its runs)
-
-
-def drivelab_cli(*args: str) -> None:
-    """Run a `drivelab` command in this kernel: `drivelab_cli("eval", RUN)` does what `drivelab eval
-    RUN` does in a terminal, without starting Python, torch and the simulator again."""
-    try:
-        drivelab_main(list(args))
-    except SystemExit as stop:
-        if stop.code:
-            raise RuntimeError(f"drivelab {' '.join(args)} failed (exit status {stop.code})") from None
 
 
 # %% [markdown]

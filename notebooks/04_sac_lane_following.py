@@ -44,7 +44,7 @@ import numpy as np
 from IPython.display import Image, Video, display
 
 import drivelab
-from drivelab.cli import main as drivelab_main
+from drivelab.cli import run as drivelab_cli  # drivelab_cli("eval", RUN) is `drivelab eval RUN`, in this kernel
 from drivelab.envs import filters
 from drivelab.training.outputs.plots import read_metrics
 from drivelab.training.outputs.statistics import rolling_mean
@@ -57,16 +57,6 @@ ENVS = {"quick": 1, "full": 2}[BUDGET]                 # simulator processes (th
 RUNS = Path("runs") / "lesson4"
 shutil.rmtree(RUNS, ignore_errors=True)  # each run of the notebook starts afresh (runs/ holds its runs)
 SHIPPED = Path(drivelab.__file__).with_name("configs")  # the configs that come with drivelab
-
-
-def drivelab_cli(*args: str) -> None:
-    """Run a `drivelab` command in this kernel: `drivelab_cli("eval", RUN)` does what `drivelab eval
-    RUN` does in a terminal, without starting Python, torch and the simulator again."""
-    try:
-        drivelab_main(list(args))
-    except SystemExit as stop:
-        if stop.code:
-            raise RuntimeError(f"drivelab {' '.join(args)} failed (exit status {stop.code})") from None
 
 
 # %% [markdown]

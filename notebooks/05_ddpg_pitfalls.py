@@ -50,7 +50,7 @@ import onnxruntime
 import torch
 
 import drivelab
-from drivelab.cli import main as drivelab_main
+from drivelab.cli import run as drivelab_cli  # drivelab_cli("export", RUN) is `drivelab export RUN`, in this kernel
 from drivelab.training.outputs.plots import read_metrics
 
 BUDGET = os.environ.get("DRIVELAB_NOTEBOOK_BUDGET", "quick")  # "quick" (under a minute) or "full" (about 8 minutes)
@@ -61,20 +61,6 @@ RUNS = Path("runs") / "lesson5"
 shutil.rmtree(RUNS, ignore_errors=True)  # each run of the notebook starts afresh (runs/ holds its runs)
 SHIPPED = Path(drivelab.__file__).with_name("configs")
 torch.manual_seed(0)
-
-
-def drivelab_cli(*args: str, capture: bool = False) -> str:
-    """Run a `drivelab` command in this kernel: `drivelab_cli("export", RUN, ...)` does what `drivelab
-    export RUN ...` does in a terminal, without starting Python, torch and the simulator again.
-    Returns what it printed if ``capture`` (else prints it)."""
-    printed = io.StringIO()
-    try:
-        with contextlib.redirect_stdout(printed) if capture else contextlib.nullcontext():
-            drivelab_main(list(args))
-    except SystemExit as stop:
-        if stop.code:
-            raise RuntimeError(f"drivelab {' '.join(args)} failed (exit status {stop.code})") from None
-    return printed.getvalue()
 
 
 def train(name: str, algo: str, **section) -> Path:
@@ -201,9 +187,12 @@ plt.show()
 
 # %%
 rewards = [str(SHIPPED / "rewards" / f) for f in ("cte.yaml", "lane.yaml", "native_progress.yaml")]
-table = json.loads(drivelab_cli("reward", "compare", "--rewards", *rewards, "--env", "MetaDrive-10env-v0",
-                                "--policy", "lane-keeping", "--episodes", {"quick": "1", "full": "5"}[BUDGET],
-                                "--max-steps", {"quick": "100", "full": "1000"}[BUDGET], "--json", capture=True))
+printed = io.StringIO()
+with contextlib.redirect_stdout(printed):  # --json prints one object: read it here instead
+    drivelab_cli("reward", "compare", "--rewards", *rewards, "--env", "MetaDrive-10env-v0",
+                 "--policy", "lane-keeping", "--episodes", {"quick": "1", "full": "5"}[BUDGET],
+                 "--max-steps", {"quick": "100", "full": "1000"}[BUDGET], "--json")
+table = json.loads(printed.getvalue())
 for name, row in table["table"].items():
     terms = ", ".join(f"{k[5:]} {v:.1f}" for k, v in row.items() if k.startswith("term/"))
     print(f"{name:16s} return {row['return_mean']:8.1f} over {row['steps_counted']:.0f} steps per episode ({terms})")

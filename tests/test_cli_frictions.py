@@ -177,3 +177,13 @@ def test_a_signal_ends_a_command_with_128_plus_its_number(sig, status, run_main,
     assert code == status
     assert err.strip() == ("drivelab: terminated" if sig == signal.SIGTERM else "drivelab: interrupted")
     assert issubclass(Terminated, KeyboardInterrupt)
+
+
+def test_run_is_the_command_in_this_process_and_a_failure_raises(capsys):
+    """``cli.run`` (what the notebooks call) returns after a command that succeeds and raises,
+    naming the command, where ``drivelab`` would exit with an error status."""
+    cli.run("configs")
+    assert "ppo_metadrive_demo" in capsys.readouterr().out
+    with pytest.raises(RuntimeError, match=r"drivelab eval /no/such/run failed \(exit status [12]\)"):
+        cli.run("eval", Path("/no/such/run"))
+    assert "/no/such/run" in capsys.readouterr().err
