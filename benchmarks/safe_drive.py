@@ -10,8 +10,10 @@ Methods (``--arms``, each a config of ``drivelab/configs``):
 * ``sac_lag``: the constrained recipe, SAC-Lagrangian with a PID multiplier (``safe_drive``);
 * ``ppo_lag``: PPO-Lagrangian, the baseline the field reproduces (``ppo_lag_safe_metadrive``).
 
-For each method and seed: train RUNS/ARM/seed_N (the config's ``max_minutes`` bounds the wall
-clock; an interrupted run resumes, a finished one is kept), then evaluate the run's own choice,
+For each method and seed: train RUNS/ARM/seed_N for its config's ``steps`` (decisions, env steps:
+a budget that means the same on every CPU, ``--steps`` to change it; the minutes it took are
+recorded with the CPU gauge beside them; an interrupted run resumes, a finished one is kept), then
+evaluate the run's own choice,
 ``checkpoints/best`` (picked during training on scenarios 200-229), on the 200 unseen scenarios
 0-199 of SafeMetaDrive-validation-v0 with deterministic actions. MetaDrive's expert and the random
 policy play the same 200. Per method the JSON holds each seed's test success, episode cost, cost
@@ -19,19 +21,27 @@ rate, crash, out-of-road and route completion, its cumulative training cost (the
 training episode: how much harm happened while learning), minutes and decisions; over seeds the
 mean with its 95% confidence interval and the minimum; and the issue's goals checked against the
 unconstrained method. The PNG plots success and cost on the selection scenarios against training
-minutes. Every result is cached in the run directories, so running it again does what is missing.
+minutes and against decisions, and the cumulative training cost against decisions.
+
+Each finished method and seed is kept as a record, ``RECORDS/ARM_seedN.json`` (its provenance:
+command, commit, versions, CPU and gauge), and the expert's and random's episodes as
+``RECORDS/baselines.json``. The table is made from every record in RECORDS, so a 5-seed table
+can be filled over several sittings (one method and seed takes about 40 minutes on two cores):
+running the command again trains only what has no record. A record made with another config file
+or budget is refused, not mixed in.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from drive_recipe import cpu_gauge_ms, train_seed
+from drive_recipe import train_seed
 from provenance import provenance  # benchmarks/provenance.py
 
 from drivelab.api import baseline_env, evaluate_baseline, evaluate_checkpoint
@@ -46,6 +56,7 @@ ARMS = {"unconstrained": "safe_drive_unconstrained", "shaping": "safe_drive_shap
 HELDOUT_ENV, EPISODES = "SafeMetaDrive-validation-v0", 200
 METRICS = ("success_rate", "cost", "cost_rate", "crash_rate", "out_of_road_rate", "route_completion")
 CONSTRAINED = "sac_lag"
+RECORDS = Path(__file__).resolve().parent / "results" / "safe_drive_runs"
 
 
 def heldout(run_dir: Path, episodes: int) -> dict:
@@ -66,17 +77,63 @@ def outcomes(result) -> dict:
 
 
 def training_record(run_dir: Path) -> dict:
-    """The cumulative training cost and the curves of the in-training evaluations (selection scenarios)."""
+    """The cumulative training cost (its final value and its curve against decisions) and the
+    curves of the in-training evaluations on the selection scenarios (against decisions and minutes)."""
     metrics = read_metrics(run_dir)
     out = {}
     if "charts/cumulative_cost" in metrics:
-        out["training_cost"] = float(metrics["charts/cumulative_cost"][2][-1])
+        steps, _, values = metrics["charts/cumulative_cost"]
+        out["training_cost"] = float(values[-1])
+        out["training_cost_curve"] = {"steps": [int(x) for x in steps], "cost": [round(float(x), 2) for x in values]}
     for name, key in (("success", "eval/success_rate"), ("cost", "eval/cost")):
         if key in metrics:
-            _, seconds, values = metrics[key]
-            out.setdefault("selection", {})["minutes"] = [round(float(x), 2) for x in seconds / 60]
-            out["selection"][name] = [float(x) for x in values]
+            steps, seconds, values = metrics[key]
+            selection = out.setdefault("selection", {})
+            selection.update(steps=[int(x) for x in steps], minutes=[round(float(x), 2) for x in seconds / 60])
+            selection[name] = [float(x) for x in values]
     return out
+
+
+def config_sha256(config: Path) -> str:
+    return hashlib.sha256(config.read_bytes()).hexdigest()
+
+
+def read_record(path: Path, config: Path, overrides: dict) -> dict | None:
+    """The record at ``path`` if there is one; one line (SystemExit) when it was made with another
+    config file or other overrides: its numbers would not be this method's at this budget."""
+    if not path.is_file():
+        return None
+    record = json.loads(path.read_text())
+    if record.get("config_sha256") != config_sha256(config) or record.get("overrides") != overrides:
+        raise SystemExit(f"{path}: made with another version of {config.name} or other overrides "
+                         f"({record.get('overrides')}); move it out of {path.parent} to measure again")
+    return record
+
+
+def records_in(folder: Path) -> dict[str, dict[str, dict]]:
+    """Every record in ``folder``: arm -> seed -> record, in ARMS' order and by seed."""
+    found: dict[str, dict[str, dict]] = {}
+    for path in sorted(folder.glob("*_seed*.json")):
+        record = json.loads(path.read_text())
+        found.setdefault(record["arm"], {})[str(record["seed"])] = record
+    return {arm: dict(sorted(found[arm].items(), key=lambda kv: int(kv[0]))) for arm in ARMS if arm in found}
+
+
+def baseline_outcomes(folder: Path, names: list[str], episodes: int) -> dict:
+    """The reference policies on the held-out scenarios, kept in FOLDER/baselines.json (with its
+    provenance) and played again only for a policy or an episode count it lacks."""
+    path = folder / "baselines.json"
+    kept = json.loads(path.read_text()) if path.is_file() else {}
+    if kept.get("episodes") != episodes:
+        kept = {"episodes": episodes, "policies": {}}
+    missing = [name for name in names if name not in kept["policies"]]
+    if missing:
+        started = time.time()
+        for name in missing:
+            kept["policies"][name] = outcomes(evaluate_baseline(name, baseline_env(env_id=HELDOUT_ENV), episodes))
+        kept["provenance"] = provenance(started)
+        path.write_text(json.dumps(kept, indent=1) + "\n")
+    return {name: kept["policies"][name] for name in names}
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -106,28 +163,40 @@ def goals(arms: dict, cost_limit: float | None) -> dict:
 
 
 def plot(arms: dict, cost_limit: float | None, out: Path) -> None:
+    """Top: success and episode cost on the selection scenarios against training minutes and the
+    cumulative training cost against decisions; bottom: the same two curves against decisions."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
-    colors = dict(zip(arms, ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:red")))
+    fig, axes = plt.subplots(2, 3, figsize=(16, 8.4))
+    colors = dict(zip(ARMS, ("tab:blue", "tab:orange", "tab:green", "tab:purple")))
     for arm, data in arms.items():
-        for seed, row in data["seeds"].items():
+        for i, (seed, row) in enumerate(data["seeds"].items()):
+            label = arm if i == 0 else None
             curve = row.get("selection", {})
-            for ax, name in zip(axes, ("success", "cost")):
+            for column, name in enumerate(("success", "cost")):
                 if name in curve:
-                    ax.plot(curve["minutes"], curve[name], "-", color=colors[arm], alpha=0.6,
-                            label=arm if seed == next(iter(data["seeds"])) else None)
+                    axes[0, column].plot(curve["minutes"], curve[name], "-o", ms=3, color=colors[arm], alpha=0.6, label=label)
+                    axes[1, column].plot(curve["steps"], curve[name], "-o", ms=3, color=colors[arm], alpha=0.6, label=label)
+            if "training_cost_curve" in row:
+                spent = row["training_cost_curve"]
+                axes[0, 2].plot(spent["steps"], spent["cost"], "-", color=colors[arm], alpha=0.6, label=label)
     if cost_limit is not None:
-        axes[1].axhline(cost_limit, color="black", linestyle="--", label=f"cost_limit {cost_limit}")
-    for ax, label in zip(axes, ("success rate (scenarios 200-229)", "episode cost (scenarios 200-229)")):
-        ax.set_xlabel("training wall clock (minutes, 2 CPU cores)")
-        ax.set_ylabel(label)
+        for ax in axes[:, 1]:
+            ax.axhline(cost_limit, color="black", linestyle="--", label=f"cost_limit {cost_limit}")
+    for row, xlabel in enumerate(("training wall clock (minutes, 2 CPU cores)", "decisions (env steps)")):
+        for column, label in enumerate(("success rate (scenarios 200-229)", "episode cost (scenarios 200-229)")):
+            axes[row, column].set_xlabel(xlabel)
+            axes[row, column].set_ylabel(label)
+    axes[0, 2].set_xlabel("decisions (env steps)")
+    axes[0, 2].set_ylabel("cumulative training cost")
+    axes[1, 2].axis("off")
+    for ax in axes.flat[:5]:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle("safe driving on SafeMetaDrive: success and cost while training")
+    fig.suptitle("safe driving on SafeMetaDrive: success and cost while training, and the cost of learning")
     fig.tight_layout()
     fig.savefig(out, dpi=100)
     plt.close(fig)
@@ -137,49 +206,63 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--arms", nargs="+", default=list(ARMS), choices=list(ARMS))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    parser.add_argument("--steps", type=int, help="decisions (env steps) per run for every arm (default: each config's)")
     parser.add_argument("--runs", type=Path, default=Path("runs/safe"))
+    parser.add_argument("--records", type=Path, default=RECORDS,
+                        help="one JSON per method and seed; the table is made from all of them")
     parser.add_argument("--episodes", type=int, default=EPISODES, help="held-out scenarios (0..N-1)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/safe_drive.json"))
     parser.add_argument("--baselines", nargs="*", default=["metadrive-expert", "random"],
                         help="reference policies on the same scenarios (none: --baselines)")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
-                        help="overrides for every arm, e.g. max_minutes=5 for a smoke run")
+                        help="overrides for every arm, e.g. eval.episodes=10 for a smoke run")
     args = parser.parse_args()
     started = time.time()
     overrides = {key: parse_value(value) for key, _, value in (item.partition("=") for item in args.set)}
-    gauge_before = cpu_gauge_ms()
-    arms = {}
+    if args.steps is not None:  # a budget in decisions: a slow CPU takes longer instead of learning less
+        overrides.update(steps=args.steps, max_minutes=None)
+    args.records.mkdir(parents=True, exist_ok=True)
     for arm in args.arms:
         config = CONFIGS / f"{ARMS[arm]}.yaml"
-        seeds = {}
         for seed in args.seeds:
+            path = args.records / f"{arm}_seed{seed}.json"
+            if read_record(path, config, overrides) is not None:
+                continue
             run_dir = args.runs / arm / f"seed_{seed}"
             try:
                 trained = train_seed(str(config), seed, run_dir, overrides)
             except KeyboardInterrupt:
                 raise SystemExit(f"interrupted; the same command resumes {arm} seed {seed} in {run_dir}") from None
-            seeds[str(seed)] = {**trained, **heldout(run_dir, args.episodes), **training_record(run_dir)}
-            print(json.dumps({"arm": arm, "seed": seed, **{k: v for k, v in seeds[str(seed)].items()
-                                                            if k != "selection"}}), flush=True)
-        arms[arm] = {"config": str(config.relative_to(CONFIGS.parent.parent)), "seeds": seeds,
+            record = {"arm": arm, "seed": seed, "config": str(config.relative_to(CONFIGS.parent.parent)),
+                      "config_sha256": config_sha256(config), "overrides": overrides, "episodes": args.episodes,
+                      **trained, **heldout(run_dir, args.episodes), **training_record(run_dir)}
+            path.write_text(json.dumps(record, indent=1) + "\n")
+            print(json.dumps({k: v for k, v in record.items() if k not in ("selection", "training_cost_curve")}),
+                  flush=True)
+    arms = {}
+    for arm, seeds in records_in(args.records).items():
+        config = CONFIGS / f"{ARMS[arm]}.yaml"
+        for seed in seeds:  # every record in the table is this config's at this budget
+            read_record(args.records / f"{arm}_seed{seed}.json", config, overrides)
+        arms[arm] = {"config": seeds[next(iter(seeds))]["config"], "seeds": seeds,
                      "summary": summarise(list(seeds.values()))}
-    baselines = {name: outcomes(evaluate_baseline(name, baseline_env(env_id=HELDOUT_ENV), args.episodes))
-                 for name in args.baselines}
+    baselines = baseline_outcomes(args.records, args.baselines, args.episodes)
     limit = read_yaml(CONFIGS / f"{ARMS[CONSTRAINED]}.yaml").get("sac_lag", {}).get("cost_limit")
-    gauge_after = cpu_gauge_ms()  # measured before provenance(), so that its end time follows every measurement
-    result = {"benchmark": "safe-drive", **provenance(started), "cpu_gauge_ms": [gauge_before, gauge_after],
-              "overrides": overrides, "cost_limit": limit,
-              "protocol": f"train on each config's SafeMetaDrive split; report checkpoints/best, chosen on scenarios "
-                          f"200-229 during training, on the unseen scenarios 0-{args.episodes - 1} of "
-                          f"{HELDOUT_ENV} (deterministic actions)",
+    result = {"benchmark": "safe-drive", **provenance(started), "overrides": overrides, "cost_limit": limit,
+              "records": str(args.records),
+              "protocol": f"train on each config's SafeMetaDrive split for its steps (decisions); report "
+                          f"checkpoints/best, chosen on scenarios 200-229 during training, on the unseen scenarios "
+                          f"0-{args.episodes - 1} of {HELDOUT_ENV} (deterministic actions); each seed's record "
+                          f"holds its own commit, minutes and CPU gauge",
               "arms": arms, "baselines": baselines, "goals": goals(arms, limit)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     plot(arms, limit, args.out.with_suffix(".png"))
     for arm, data in arms.items():
         s = data["summary"]
-        print(f"{arm:14s} success {s['success_rate']['mean']:.3f} ± {s['success_rate']['ci95']:.3f}  "
-              f"cost {s['cost']['mean']:.2f} ± {s['cost']['ci95']:.2f}" if "cost" in s else arm)
+        print(f"{arm:14s} {s['success_rate']['seeds']} seeds  success {s['success_rate']['mean']:.3f} ± "
+              f"{s['success_rate']['ci95']:.3f}  cost {s['cost']['mean']:.2f} ± {s['cost']['ci95']:.2f}  "
+              f"training cost {s.get('training_cost', {}).get('mean', float('nan')):.0f}")
     print(json.dumps(result["goals"]))
     return 0
 
