@@ -169,6 +169,7 @@ def plot(arms: dict, cost_limit: float | None, out: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, axes = plt.subplots(2, 3, figsize=(16, 8.4))
     colors = dict(zip(ARMS, ("tab:blue", "tab:orange", "tab:green", "tab:purple")))
@@ -190,6 +191,8 @@ def plot(arms: dict, cost_limit: float | None, out: Path) -> None:
         for column, label in enumerate(("success rate (scenarios 200-229)", "episode cost (scenarios 200-229)")):
             axes[row, column].set_xlabel(xlabel)
             axes[row, column].set_ylabel(label)
+    for ax in (*axes[1, :2], axes[0, 2]):  # decisions in thousands: 200000 would run into its neighbours
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1000:g}k"))
     axes[0, 2].set_xlabel("decisions (env steps)")
     axes[0, 2].set_ylabel("cumulative training cost")
     axes[1, 2].axis("off")
