@@ -270,6 +270,24 @@ def test_stuck_guard_on_synthetic_drives():
     assert _guard_run(guard, creeping) == [None] * 600
 
 
+def test_stuck_guard_ends_a_car_pinned_in_a_collision():
+    """A car pressed against a cone jitters around the stall speed, so only the contact test ends it:
+    in a collision on half of the last 10 s (100 steps of 0.1 s)."""
+    guard = StuckGuard(step_seconds=0.1)
+    jitter = [guard.update(0.0, 0.0, 0.3 if k % 2 else 0.05, 0.4, collided=True) for k in range(100)]
+    assert jitter == [None] * 49 + ["stuck"] * 51                       # the 50th contact in the window
+    guard.reset()
+    bumping = [guard.update(0.0, 0.0, 0.4, 0.2, collided=k % 3 == 0) for k in range(300)]   # a third in contact
+    assert bumping == [None] * 300
+    guard.reset()
+    scrape = [guard.update(0.0, 0.0, 6.0, 0.2 + k / 1000, collided=k < 40) for k in range(300)]  # 4 s, then away
+    assert scrape == [None] * 300
+    guard.reset()
+    # contacts that leave the window no longer count: 49 in contact, 51 clear, then 49 more
+    steps = [True] * 49 + [False] * 51 + [True] * 49
+    assert [guard.update(0.0, 0.0, 1.0, 0.3, collided=c) for c in steps] == [None] * 149
+
+
 def test_stuck_guard_counts_simulated_seconds():
     guard = StuckGuard(step_seconds=0.2)   # simulator_repeat 2: 0.2 s per env step
     assert _guard_run(guard, [(180.0, 0.0, 0.0, 0.0)] * 5)[-1] == "rolled_over"

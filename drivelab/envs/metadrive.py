@@ -23,8 +23,9 @@ What this adapter adds to ``metadrive.MetaDriveEnv``:
   ``on_broken_line`` (this step) and ``native_reward``. Pass ``full_info=True`` for MetaDrive's
   own dict as well.
 * **Cars that can go nowhere.** On the ``SafeMetaDrive-*`` ids (where crashes do not end the
-  episode) a car that rolled over or stalled ends its episode as truncated, with
-  ``info["rolled_over"]`` or ``info["stuck"]`` (:class:`StuckGuard`, ``stuck_guard=``).
+  episode) a car that rolled over, stalled or stays pinned in a collision ends its episode as
+  truncated, with ``info["rolled_over"]`` or ``info["stuck"]`` (:class:`StuckGuard`,
+  ``stuck_guard=``).
 * **No** ``cost_to_reward``: SafeMetaDrive 0.4.3 accepts it and ignores it (metadrive#844);
   drivelab refuses it and points to its ``cost`` reward term (:mod:`drivelab.envs.costs`).
 * **Observations**: ``observation="state"`` (259-d lidar/state vector) or ``"topdown"``
@@ -40,6 +41,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+from collections import deque
 from typing import Any
 
 import gymnasium as gym
@@ -142,7 +144,11 @@ class StuckGuard:
     * ``"rolled_over"``: tilted more than ``max_tilt_deg`` from upright for ``rollover_seconds``;
       the tilt of the car's up axis is arccos(cos(roll) cos(pitch)) (the heading does not move it);
     * ``"stuck"``: slower than ``stall_speed`` (m/s) with less than ``min_progress`` route
-      completion gained for ``stall_seconds`` (a car waiting at a jam for a few seconds is fine);
+      completion gained for ``stall_seconds`` (a car waiting at a jam for a few seconds is fine),
+      or *pinned*: in a collision on at least ``pinned_share`` of the last ``pinned_seconds``.
+      A car pressed against a traffic cone, or bumping a broken-down car, jitters at 0.1-0.5 m/s,
+      so the stall test alone never fires, while SafeMetaDrive charges a cost for every step in
+      contact: without this test such a car runs to the step limit, paying on most steps;
     * ``None`` otherwise.
 
     ``step_seconds`` is the simulated time of one env step (MetaDrive: decision_repeat x 0.02 s),
@@ -150,22 +156,34 @@ class StuckGuard:
     """
 
     def __init__(self, step_seconds: float, max_tilt_deg: float = 60.0, rollover_seconds: float = 1.0,
-                 stall_speed: float = 0.1, stall_seconds: float = 30.0, min_progress: float = 1e-4):
+                 stall_speed: float = 0.1, stall_seconds: float = 30.0, min_progress: float = 1e-4,
+                 pinned_seconds: float = 10.0, pinned_share: float = 0.5):
         if not step_seconds > 0:
             raise DrivelabError(f"StuckGuard step_seconds must be > 0, got {step_seconds}")
         self.max_tilt = math.radians(max_tilt_deg)
         self.rollover_steps = _steps(rollover_seconds, step_seconds)
         self.stall_steps = _steps(stall_seconds, step_seconds)
         self.stall_speed, self.min_progress = stall_speed, min_progress
+        self.pinned_steps = _steps(pinned_seconds, step_seconds)
+        self.pinned_contacts = math.ceil(pinned_share * self.pinned_steps)
         self.reset()
 
     def reset(self) -> None:
-        """A new episode: no tilted or stalled steps yet."""
+        """A new episode: no tilted, stalled or colliding steps yet."""
         self.tilted, self.stalled = 0, 0
         self.anchor: float | None = None  # route completion where the current stall began
+        # the last pinned_steps collision flags and how many of them are set
+        self.recent: deque[bool] = deque(maxlen=self.pinned_steps)
+        self.contacts = 0
 
-    def update(self, roll: float, pitch: float, speed: float, route_completion: float) -> str | None:
-        """One env step (angles in radians, speed in m/s): "rolled_over", "stuck" or None."""
+    def update(self, roll: float, pitch: float, speed: float, route_completion: float,
+               collided: bool = False) -> str | None:
+        """One env step (angles in radians, speed in m/s, ``collided``: in contact with a vehicle,
+        an object or a building this step): "rolled_over", "stuck" or None."""
+        if len(self.recent) == self.pinned_steps:
+            self.contacts -= self.recent[0]   # the oldest flag leaves the window
+        self.recent.append(collided)
+        self.contacts += collided
         tilt = math.acos(max(-1.0, min(1.0, math.cos(roll) * math.cos(pitch))))
         self.tilted = self.tilted + 1 if tilt > self.max_tilt else 0
         if speed >= self.stall_speed:
@@ -176,7 +194,7 @@ class StuckGuard:
             self.stalled += 1
         if self.tilted >= self.rollover_steps:
             return "rolled_over"
-        return "stuck" if self.stalled >= self.stall_steps else None
+        return "stuck" if self.stalled >= self.stall_steps or self.contacts >= self.pinned_contacts else None
 
 
 class MetaDriveGym(gym.Env):
@@ -276,7 +294,7 @@ class MetaDriveGym(gym.Env):
         if self._guard is not None:
             agent = self._env.agent
             verdict = None if terminated or truncated else \
-                self._guard.update(agent.roll, agent.pitch, lean["speed"], lean["route_completion"])
+                self._guard.update(agent.roll, agent.pitch, lean["speed"], lean["route_completion"], lean["collided"])
             lean.update(stuck=verdict == "stuck", rolled_over=verdict == "rolled_over")
             if verdict is not None:  # the car can go nowhere: end the episode, not as a timeout
                 truncated, lean["timeout"] = True, False

@@ -27,7 +27,7 @@ DRIVING_METRICS = {
     "mean_abs_cte": "mean_abs_cte",          # metres from the lane centre, averaged over the episode
     "replayed": "replay_rate",               # the episode replayed a failed scenario (envs.wrappers.ScenarioReplay)
     "episode_cost": "cost",                  # the episode's summed cost (envs.costs.CostSignal)
-    "stuck": "stuck_rate",                   # ended because the car stood still too long (envs.metadrive)
+    "stuck": "stuck_rate",                   # ended: the car stood still, or stayed pinned in a collision (envs.metadrive)
     "rolled_over": "rollover_rate",          # ended because the car lay on its side or roof (envs.metadrive)
 }
 
