@@ -98,16 +98,18 @@ def config_sha256(config: Path) -> str:
     return hashlib.sha256(config.read_bytes()).hexdigest()
 
 
-def read_record(path: Path, config: Path, overrides: dict) -> dict | None:
-    """The record at ``path`` if there is one; one line (SystemExit) when it was made with another
-    config file or other overrides: its numbers would not be this method's at this budget."""
-    if not path.is_file():
-        return None
-    record = json.loads(path.read_text())
+def check_record(record: dict, path: Path, config: Path, overrides: dict) -> dict:
+    """``record`` (read from ``path``); one line (SystemExit) when it was made with another config
+    file or other overrides: its numbers would not be this method's at this budget."""
     if record.get("config_sha256") != config_sha256(config) or record.get("overrides") != overrides:
         raise SystemExit(f"{path}: made with another version of {config.name} or other overrides "
                          f"({record.get('overrides')}); move it out of {path.parent} to measure again")
     return record
+
+
+def read_record(path: Path, config: Path, overrides: dict) -> dict | None:
+    """The record at ``path`` if there is one (:func:`check_record`)."""
+    return check_record(json.loads(path.read_text()), path, config, overrides) if path.is_file() else None
 
 
 def records_in(folder: Path) -> dict[str, dict[str, dict]]:
@@ -245,8 +247,8 @@ def main() -> int:
     arms = {}
     for arm, seeds in records_in(args.records).items():
         config = CONFIGS / f"{ARMS[arm]}.yaml"
-        for seed in seeds:  # every record in the table is this config's at this budget
-            read_record(args.records / f"{arm}_seed{seed}.json", config, overrides)
+        for seed, record in seeds.items():  # every record in the table is this config's at this budget
+            check_record(record, args.records / f"{arm}_seed{seed}.json", config, overrides)
         arms[arm] = {"config": seeds[next(iter(seeds))]["config"], "seeds": seeds,
                      "summary": summarise(list(seeds.values()))}
     baselines = baseline_outcomes(args.records, args.baselines, args.episodes)
