@@ -8,6 +8,8 @@ Methods (``--arms``, each a config of ``drivelab/configs``):
 * ``unconstrained``: the drive recipe (SAC) on SafeMetaDrive, cost ignored (``safe_drive_unconstrained``);
 * ``shaping``: the same with the cost as a fixed reward penalty (``safe_drive_shaping``);
 * ``sac_lag``: the constrained recipe, SAC-Lagrangian with a PID multiplier (``safe_drive``);
+* ``early_termination``: SAC on the early-terminated MDP, where a training episode ends at its
+  first cost (``safe_drive_early_termination``; Sun et al. 2021);
 * ``ppo_lag``: PPO-Lagrangian, the baseline the field reproduces (``ppo_lag_safe_metadrive``).
 
 For each method and seed: train RUNS/ARM/seed_N for its config's ``steps`` (decisions, env steps:
@@ -52,10 +54,11 @@ from drivelab.training.outputs.statistics import mean_and_ci95
 
 CONFIGS = Path(__file__).resolve().parent.parent / "drivelab" / "configs"
 ARMS = {"unconstrained": "safe_drive_unconstrained", "shaping": "safe_drive_shaping", "sac_lag": "safe_drive",
-        "ppo_lag": "ppo_lag_safe_metadrive"}
+        "early_termination": "safe_drive_early_termination", "ppo_lag": "ppo_lag_safe_metadrive"}
 HELDOUT_ENV, EPISODES = "SafeMetaDrive-validation-v0", 200
 METRICS = ("success_rate", "cost", "cost_rate", "crash_rate", "out_of_road_rate", "route_completion")
-CONSTRAINED = "sac_lag"
+CONSTRAINED = "sac_lag"   # whose cost_limit is the table's
+SAFE_ARMS = ("sac_lag", "early_termination", "shaping", "ppo_lag")   # the goals are checked for each
 RECORDS = Path(__file__).resolve().parent / "results" / "safe_drive_runs"
 
 
@@ -150,18 +153,22 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def goals(arms: dict, cost_limit: float | None) -> dict:
-    """The issue's goals for the constrained method against the unconstrained one."""
-    if CONSTRAINED not in arms or "unconstrained" not in arms:
+    """The issue's goals for each safe method (every arm but the unconstrained one) against the
+    unconstrained one: arm -> goal -> met."""
+    if "unconstrained" not in arms:
         return {}
-    safe, free = arms[CONSTRAINED]["summary"], arms["unconstrained"]["summary"]
-    seeds = arms[CONSTRAINED]["seeds"].values()
-    out = {"test_cost_at_most_a_third": safe["cost"]["mean"] <= free["cost"]["mean"] / 3,
-           "success_within_3_points": safe["success_rate"]["mean"] >= free["success_rate"]["mean"] - 0.03}
-    if "training_cost" in safe and "training_cost" in free:
-        out["training_cost_at_most_half"] = safe["training_cost"]["mean"] <= free["training_cost"]["mean"] / 2
-    if cost_limit is not None:
-        out["every_seed_within_cost_limit"] = all(row["cost"] <= cost_limit for row in seeds)
-    return out
+    free = arms["unconstrained"]["summary"]
+    checked = {}
+    for arm in (name for name in SAFE_ARMS if name in arms):
+        safe, seeds = arms[arm]["summary"], arms[arm]["seeds"].values()
+        out = {"test_cost_at_most_a_third": safe["cost"]["mean"] <= free["cost"]["mean"] / 3,
+               "success_within_3_points": safe["success_rate"]["mean"] >= free["success_rate"]["mean"] - 0.03}
+        if "training_cost" in safe and "training_cost" in free:
+            out["training_cost_at_most_half"] = safe["training_cost"]["mean"] <= free["training_cost"]["mean"] / 2
+        if cost_limit is not None:
+            out["every_seed_within_cost_limit"] = all(row["cost"] <= cost_limit for row in seeds)
+        checked[arm] = out
+    return checked
 
 
 def plot(arms: dict, cost_limit: float | None, out: Path) -> None:
@@ -174,7 +181,7 @@ def plot(arms: dict, cost_limit: float | None, out: Path) -> None:
     import matplotlib.ticker
 
     fig, axes = plt.subplots(2, 3, figsize=(16, 8.4))
-    colors = dict(zip(ARMS, ("tab:blue", "tab:orange", "tab:green", "tab:purple")))
+    colors = dict(zip(ARMS, ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")))
     for arm, data in arms.items():
         for i, (seed, row) in enumerate(data["seeds"].items()):
             label = arm if i == 0 else None

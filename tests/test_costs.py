@@ -92,6 +92,34 @@ def test_action_repeat_sums_the_cost_of_its_steps():
     assert [(reward, info["cost"], info["episode_cost"]) for reward, info in steps[1:]] == [(7.5, 3.0, 3.0), (2.5, 1.0, 4.0)]
 
 
+@pytest.mark.parametrize("budget, action, ends", [(0.0, FAST, [1.0]),                     # the first cost ends it
+                                                  (0.6, MIDDLE, [0.25, 0.5, 0.75]),       # 0.75 > 0.6 at step 3
+                                                  (4.0, FAST, [1.0, 2.0, 3.0, 4.0])])     # never over: the env ends it
+def test_cost_termination_ends_the_episode_where_its_cost_exceeds_the_budget(budget, action, ends):
+    steps = _episode(make_env(EnvConfig(id=LANES, cost_termination=budget)), action)
+    assert [info["episode_cost"] for _, info in steps[1:]] == ends
+    over = len(ends) < 4
+    assert [info["cost_terminated"] for _, info in steps[1:]] == [False] * (len(ends) - 1) + [over]
+
+
+def test_cost_termination_is_for_training_only():
+    from drivelab.config import TrainConfig
+    from drivelab.training.run.periodic_evaluation import eval_env_config
+
+    trained = EnvConfig(id=LANES, cost_termination=0.0)
+    assert trained.played().cost_termination is None
+    assert trained.on("CartPole-v1").cost_termination is None
+    assert eval_env_config(TrainConfig(env=trained)).cost_termination is None
+    steps = _episode(make_env(trained.played()), FAST)
+    assert len(steps) == 5 and "cost_terminated" not in steps[-1][1]
+
+
+@pytest.mark.parametrize("budget", [-1.0, "soon", True, math.inf])
+def test_a_bad_cost_termination_budget_is_one_line(budget):
+    with pytest.raises(DrivelabError, match=r"^config field 'env.cost_termination' must be a cost budget >= 0"):
+        EnvConfig(id=LANES, cost_termination=budget).validate()
+
+
 # ---- cost terms
 
 

@@ -22,7 +22,7 @@ import gymnasium as gym
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 
 from drivelab.envs.config import EnvConfig
-from drivelab.envs.costs import CostSignal
+from drivelab.envs.costs import CostSignal, CostTermination
 from drivelab.envs.filters import apply_filters
 from drivelab.envs.metadrive import held_in_simulator
 from drivelab.envs.multiagent import agent_spaces
@@ -58,7 +58,8 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
              wrapper: Callable[[gym.Env], gym.Env] | None = None) -> gym.Env:
     """Build one environment from a validated :class:`~drivelab.config.EnvConfig`, then drivelab's
     wrappers in this order: the cost signal (``cfg.cost``, and ``info["episode_cost"]`` for any env
-    that reports a cost: :mod:`drivelab.envs.costs`), the replay of failed scenarios
+    that reports a cost: :mod:`drivelab.envs.costs`), the end of an episode whose cost exceeds
+    ``cfg.cost_termination`` (training only), the replay of failed scenarios
     (``cfg.scenario_replay``), reward shaping (``cfg.reward``, whose ``cost`` term sees the cost
     after ``cfg.cost``'s terms), action adapter (``cfg.action_grid`` or ``cfg.fixed_throttle``), action repeat
     (``cfg.action_repeat``, over the shaped reward; with ``cfg.simulator_repeat``, MetaDrive holds
@@ -89,6 +90,8 @@ def make_env(cfg: EnvConfig, *, render_mode: str | None = None,
         env = KillPointInWorker(env) if kill_tested else env
         return wrapper(env) if wrapper is not None else env
     env = CostSignal(env, cfg.cost)  # silent on an env that reports no cost and has no env.cost terms
+    if cfg.cost_termination is not None:
+        env = CostTermination(env, cfg.cost_termination)
     if cfg.scenario_replay:
         env = ScenarioReplay(env, cfg.scenario_replay)
     if cfg.reward:

@@ -70,6 +70,10 @@ class EnvConfig:
     # solid_line, broken_line, speeding or module:function (drivelab.envs.costs); info["cost"]
     # becomes their weighted sum. None: the env's own cost, where it reports one.
     cost: dict[str, Any] | None = None
+    # In training only: end an episode (terminated) on the step its cost first exceeds this budget,
+    # the early-terminated MDP of safe exploration (costs.CostTermination; 0: the first cost ends
+    # it). None: episodes end as the env says. Evaluation plays the env as published (played).
+    cost_termination: float | None = None
     # Observation filters, applied in order: names or {name: params} (drivelab.envs.filters).
     obs_filters: list[Any] = field(default_factory=list)
     # keyword overrides for gym.make, e.g. MetaDrive's {num_scenarios: 10, traffic_density: 0.2}
@@ -96,6 +100,11 @@ class EnvConfig:
                                 f"'{self.id}' is not a MetaDrive env")
         if not 0.0 <= self.scenario_replay < 1.0:
             raise DrivelabError(f"config field '{where}.scenario_replay' must be in [0, 1), got {self.scenario_replay}")
+        if self.cost_termination is not None and not (isinstance(self.cost_termination, (int, float))
+                                                      and not isinstance(self.cost_termination, bool)
+                                                      and 0 <= self.cost_termination < float("inf")):
+            raise DrivelabError(f"config field '{where}.cost_termination' must be a cost budget >= 0 (or null), "
+                                f"got {self.cost_termination!r}")
         if self.scenario_replay and registered_id(self.id) not in metadrive_ids():
             raise DrivelabError(f"config field '{where}.scenario_replay' replays MetaDrive scenarios; "
                                 f"'{self.id}' is not a MetaDrive env")
@@ -127,8 +136,8 @@ class EnvConfig:
             self._check_multiagent(where)
 
     # Fields that wrap a single-agent env; the slots of a multi-agent scene take none of them.
-    SINGLE_AGENT_FIELDS = ("action_grid", "fixed_throttle", "reward", "cost", "obs_filters", "scenario_replay",
-                           "simulator_repeat")
+    SINGLE_AGENT_FIELDS = ("action_grid", "fixed_throttle", "reward", "cost", "cost_termination", "obs_filters",
+                           "scenario_replay", "simulator_repeat")
 
     def _check_multiagent(self, where: str) -> None:
         """A multi-agent scene: no single-agent wrappers, and ``kwargs.num_agents`` within its spawn points."""
@@ -155,10 +164,11 @@ class EnvConfig:
     def played(self) -> EnvConfig:
         """This config as evaluation plays it: ``simulator_repeat`` (a training speed-up that changes
         the simulator's own step) off, so a decision every ``action_repeat`` steps is held by the
-        wrapper on the env as published, and ``scenario_replay`` (a training curriculum) off."""
-        if not (self.simulator_repeat or self.scenario_replay):
+        wrapper on the env as published, and the training curricula ``scenario_replay`` and
+        ``cost_termination`` off."""
+        if not (self.simulator_repeat or self.scenario_replay or self.cost_termination is not None):
             return self
-        return dataclasses.replace(self, simulator_repeat=False, scenario_replay=0.0)
+        return dataclasses.replace(self, simulator_repeat=False, scenario_replay=0.0, cost_termination=None)
 
     def resolved_step_groups(self) -> int:
         """``step_groups``, with None resolved to 1 (lockstep): groups pay off only where cores are

@@ -178,5 +178,33 @@ class CostSignal(gym.Wrapper):
         return {f"cost/{name}": value for name, value in self._sums.items()}
 
 
-__all__ = ["COST_TERMS", "COST_NEEDS", "CostSignal", "TermResult", "refuse_cost_to_reward", "score_costs",
+class CostTermination(gym.Wrapper):
+    """End an episode, as terminated, on the step its cost first exceeds ``budget`` (a training
+    curriculum: ``env.cost_termination``; evaluation plays the env as published).
+
+    The early-terminated MDP of Sun et al. 2021 ("Safe Exploration by Solving Early Terminated
+    MDP"): a constrained problem with a per-episode cost budget becomes an unconstrained one whose
+    episode stops where the budget is spent, so every later reward is lost. The policy learns to
+    stay within the budget from the return alone, and a learner never lives through the rest of a
+    costly episode, which is where exploration's cost piles up on SafeMetaDrive (a car that crashes
+    keeps driving, and may stay in contact for many steps). With budget 0, the first step with
+    any cost ends the episode, as MetaDrive's own ``crash_*_done`` would for crashes, but for any env
+    that reports a cost. ``info["cost_terminated"]`` says whether the budget ended the episode.
+
+    Goes right after :class:`CostSignal`, whose ``info["episode_cost"]`` it reads.
+    """
+
+    def __init__(self, env: gym.Env, budget: float):
+        super().__init__(env)
+        if not (math.isfinite(budget) and budget >= 0):
+            raise DrivelabError(f"config field 'env.cost_termination' must be a finite budget >= 0, got {budget}")
+        self.budget = float(budget)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        over = float(info.get("episode_cost", 0.0)) > self.budget and not (terminated or truncated)
+        return obs, reward, terminated or over, truncated, {**info, "cost_terminated": over}
+
+
+__all__ = ["COST_TERMS", "COST_NEEDS", "CostSignal", "CostTermination", "TermResult", "refuse_cost_to_reward", "score_costs",
            "validate_cost_config"]
