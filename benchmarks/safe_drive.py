@@ -10,8 +10,6 @@ Methods (``--arms``, each a config of ``drivelab/configs``):
 * ``sac_lag``: the constrained recipe, SAC-Lagrangian with a PID multiplier (``safe_drive``);
 * ``early_termination``: SAC on the early-terminated MDP, where a training episode ends at its
   first cost (``safe_drive_early_termination``; Sun et al. 2021);
-* ``early_termination_prior_data``: the same, its replay seeded with 20k decisions of the shipped
-  ``drivelab-driver`` on that env (:data:`PRIOR_DATA`; their cost counts as training cost);
 * ``ppo_lag``: PPO-Lagrangian, the baseline the field reproduces (``ppo_lag_safe_metadrive``).
 
 For each method and seed: train RUNS/ARM/seed_N for its config's ``steps`` (decisions, env steps:
@@ -56,17 +54,11 @@ from drivelab.training.outputs.statistics import mean_and_ci95
 
 CONFIGS = Path(__file__).resolve().parent.parent / "drivelab" / "configs"
 ARMS = {"unconstrained": "safe_drive_unconstrained", "shaping": "safe_drive_shaping", "sac_lag": "safe_drive",
-        "early_termination": "safe_drive_early_termination",
-        "early_termination_prior_data": "safe_drive_early_termination", "ppo_lag": "ppo_lag_safe_metadrive"}
-# Arms that learn from prior data (RLPD's symmetric sampling, the learner's ``prior_data``): the
-# reference policy and how many decisions it plays on the arm's own training env first (``drivelab
-# demos``, resets seeded with the arm's seed). Collecting them is part of what the arm costs: its
-# record's training cost includes theirs, and ``prior_data`` holds their decisions, minutes and cost.
-PRIOR_DATA = {"early_termination_prior_data": ("drivelab-driver", 20_000)}
+        "early_termination": "safe_drive_early_termination", "ppo_lag": "ppo_lag_safe_metadrive"}
 HELDOUT_ENV, EPISODES = "SafeMetaDrive-validation-v0", 200
 METRICS = ("success_rate", "cost", "cost_rate", "crash_rate", "out_of_road_rate", "route_completion")
 CONSTRAINED = "sac_lag"   # whose cost_limit is the table's
-SAFE_ARMS = ("sac_lag", "early_termination", "early_termination_prior_data", "shaping", "ppo_lag")   # the goals are checked for each
+SAFE_ARMS = ("sac_lag", "early_termination", "shaping", "ppo_lag")   # the goals are checked for each
 RECORDS = Path(__file__).resolve().parent / "results" / "safe_drive_runs"
 
 
@@ -80,29 +72,6 @@ def heldout(run_dir: Path, episodes: int) -> dict:
     row = {**outcomes(result), "step": checkpoint_step(best)}
     cache.write_text(json.dumps(row) + "\n")
     return row
-
-
-def prior_data(arm: str, config: Path, seed: int, run_dir: Path) -> tuple[Path, dict]:
-    """The arm's demonstration file (recorded into RUN/prior_data.safetensors once, then kept) and
-    what collecting it took: decisions, episodes, minutes and cost."""
-    from safetensors import safe_open
-
-    from drivelab import api
-    from drivelab.tools.demonstrations import record_demonstrations
-
-    policy, steps = PRIOR_DATA[arm]
-    path = run_dir / "prior_data.safetensors"
-    if not path.is_file():
-        run_dir.mkdir(parents=True, exist_ok=True)
-        env = api.train_config({}, config=str(config)).env
-        partial = record_demonstrations(api.load(policy), env, steps, run_dir / "prior_data.partial.safetensors",
-                                        seed=seed, progress=False)
-        partial.rename(path)   # a killed recording leaves no file that looks whole
-    with safe_open(str(path), "np") as demos:
-        about = json.loads(demos.metadata()["drivelab_demonstrations"])
-        cost = float(demos.get_tensor("costs").sum())
-    return path, {"policy": policy, "decisions": about["env_steps"], "episodes": about["episodes"],
-                  "minutes": round(about["seconds"] / 60, 2), "cost": cost}
 
 
 def outcomes(result) -> dict:
@@ -212,7 +181,7 @@ def plot(arms: dict, cost_limit: float | None, out: Path) -> None:
     import matplotlib.ticker
 
     fig, axes = plt.subplots(2, 3, figsize=(16, 8.4))
-    colors = dict(zip(ARMS, ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:brown", "tab:purple")))
+    colors = dict(zip(ARMS, ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")))
     for arm, data in arms.items():
         for i, (seed, row) in enumerate(data["seeds"].items()):
             label = arm if i == 0 else None
@@ -222,9 +191,8 @@ def plot(arms: dict, cost_limit: float | None, out: Path) -> None:
                     axes[0, column].plot(curve["minutes"], curve[name], "-o", ms=3, color=colors[arm], alpha=0.6, label=label)
                     axes[1, column].plot(curve["steps"], curve[name], "-o", ms=3, color=colors[arm], alpha=0.6, label=label)
             if "training_cost_curve" in row:
-                spent, demos = row["training_cost_curve"], row.get("prior_data", {}).get("cost", 0.0)
-                axes[0, 2].plot(spent["steps"], np.add(spent["cost"], demos), "-", color=colors[arm], alpha=0.6,
-                                label=label)   # the prior data's cost was paid before the learner's first step
+                spent = row["training_cost_curve"]
+                axes[0, 2].plot(spent["steps"], spent["cost"], "-", color=colors[arm], alpha=0.6, label=label)
     if cost_limit is not None:
         for ax in axes[:, 1]:
             ax.axhline(cost_limit, color="black", linestyle="--", label=f"cost_limit {cost_limit}")
@@ -273,19 +241,13 @@ def main() -> int:
             if read_record(path, config, overrides) is not None:
                 continue
             run_dir = args.runs / arm / f"seed_{seed}"
-            prior, learner = None, dict(overrides)
             try:
-                if arm in PRIOR_DATA:
-                    demos, prior = prior_data(arm, config, seed, run_dir)
-                    learner[f"{read_yaml(config)['algo']}.prior_data"] = str(demos)
-                trained = train_seed(str(config), seed, run_dir, learner)
+                trained = train_seed(str(config), seed, run_dir, overrides)
             except KeyboardInterrupt:
                 raise SystemExit(f"interrupted; the same command resumes {arm} seed {seed} in {run_dir}") from None
             record = {"arm": arm, "seed": seed, "config": str(config.relative_to(CONFIGS.parent.parent)),
                       "config_sha256": config_sha256(config), "overrides": overrides, "episodes": args.episodes,
                       **trained, **heldout(run_dir, args.episodes), **training_record(run_dir)}
-            if prior is not None:   # the demonstrations' cost is paid while learning too
-                record.update(prior_data=prior, training_cost=record["training_cost"] + prior["cost"])
             path.write_text(json.dumps(record, indent=1) + "\n")
             print(json.dumps({k: v for k, v in record.items() if k not in ("selection", "training_cost_curve")}),
                   flush=True)
