@@ -11,7 +11,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from drivelab.envs.costs import refuse_cost_to_reward, validate_cost_config
+from drivelab.envs.costs import check_cost_budget, refuse_cost_to_reward, validate_cost_config
 from drivelab.envs.registration import (
     MULTIAGENT_SCENES,
     is_multiagent,
@@ -70,9 +70,8 @@ class EnvConfig:
     # solid_line, broken_line, speeding or module:function (drivelab.envs.costs); info["cost"]
     # becomes their weighted sum. None: the env's own cost, where it reports one.
     cost: dict[str, Any] | None = None
-    # In training only: end an episode (terminated) on the step its cost first exceeds this budget,
-    # the early-terminated MDP of safe exploration (costs.CostTermination; 0: the first cost ends
-    # it). None: episodes end as the env says. Evaluation plays the env as published (played).
+    # In training only: end an episode (terminated) once its cost exceeds this budget (safe
+    # exploration's early-terminated MDP: costs.CostTermination). None: as the env says.
     cost_termination: float | None = None
     # Observation filters, applied in order: names or {name: params} (drivelab.envs.filters).
     obs_filters: list[Any] = field(default_factory=list)
@@ -100,11 +99,8 @@ class EnvConfig:
                                 f"'{self.id}' is not a MetaDrive env")
         if not 0.0 <= self.scenario_replay < 1.0:
             raise DrivelabError(f"config field '{where}.scenario_replay' must be in [0, 1), got {self.scenario_replay}")
-        if self.cost_termination is not None and not (isinstance(self.cost_termination, (int, float))
-                                                      and not isinstance(self.cost_termination, bool)
-                                                      and 0 <= self.cost_termination < float("inf")):
-            raise DrivelabError(f"config field '{where}.cost_termination' must be a cost budget >= 0 (or null), "
-                                f"got {self.cost_termination!r}")
+        if self.cost_termination is not None:
+            check_cost_budget(self.cost_termination, f"{where}.cost_termination")
         if self.scenario_replay and registered_id(self.id) not in metadrive_ids():
             raise DrivelabError(f"config field '{where}.scenario_replay' replays MetaDrive scenarios; "
                                 f"'{self.id}' is not a MetaDrive env")
@@ -133,26 +129,7 @@ class EnvConfig:
             validate_cost_config(self.cost, f"{where}.cost")
         refuse_cost_to_reward(self.kwargs, f"config field '{where}.kwargs'")
         if is_multiagent(self.id):
-            self._check_multiagent(where)
-
-    # Fields that wrap a single-agent env; the slots of a multi-agent scene take none of them.
-    SINGLE_AGENT_FIELDS = ("action_grid", "fixed_throttle", "reward", "cost", "cost_termination", "obs_filters",
-                           "scenario_replay", "simulator_repeat")
-
-    def _check_multiagent(self, where: str) -> None:
-        """A multi-agent scene: no single-agent wrappers, and ``kwargs.num_agents`` within its spawn points."""
-        from drivelab.envs.multiagent import check_num_agents
-
-        defaults = EnvConfig()
-        for name in self.SINGLE_AGENT_FIELDS:
-            if getattr(self, name) != getattr(defaults, name):
-                raise DrivelabError(f"config field '{where}.{name}' wraps a single-agent env; the multi-agent scene "
-                                    f"'{self.id}' takes MetaDrive's own settings in '{where}.kwargs'")
-        if self.action_repeat != 1:
-            raise DrivelabError(f"config field '{where}.action_repeat': the multi-agent scene '{self.id}' takes "
-                                f"MetaDrive's decision_repeat in '{where}.kwargs' instead")
-        check_num_agents(MULTIAGENT_SCENES[registered_id(self.id)], self.kwargs.get("num_agents"),
-                         f"config field '{where}.kwargs.num_agents'")
+            check_multiagent(self, where)
 
     def on(self, env_id: str, kwargs: dict[str, Any] | None = None) -> EnvConfig:
         """This config (wrappers, filters, action grid) on another env id, e.g. a validation set:
@@ -191,3 +168,24 @@ class EnvConfig:
             raise DrivelabError(f"config field '{where}.backend': '{self.id}' allows one instance per process; use async, ray or auto")
         if self.backend == "ray" and self.envs_per_actor > 1 and needs_own_process(self.id):
             raise DrivelabError(f"config field '{where}.envs_per_actor': '{self.id}' allows one instance per process; use 1")
+
+
+# Fields that wrap a single-agent env; the slots of a multi-agent scene take none of them.
+SINGLE_AGENT_FIELDS = ("action_grid", "fixed_throttle", "reward", "cost", "cost_termination", "obs_filters",
+                       "scenario_replay", "simulator_repeat")
+
+
+def check_multiagent(cfg: EnvConfig, where: str) -> None:
+    """A multi-agent scene: no single-agent wrappers, and ``kwargs.num_agents`` within its spawn points."""
+    from drivelab.envs.multiagent import check_num_agents
+
+    defaults = EnvConfig()
+    for name in SINGLE_AGENT_FIELDS:
+        if getattr(cfg, name) != getattr(defaults, name):
+            raise DrivelabError(f"config field '{where}.{name}' wraps a single-agent env; the multi-agent scene "
+                                f"'{cfg.id}' takes MetaDrive's own settings in '{where}.kwargs'")
+    if cfg.action_repeat != 1:
+        raise DrivelabError(f"config field '{where}.action_repeat': the multi-agent scene '{cfg.id}' takes "
+                            f"MetaDrive's decision_repeat in '{where}.kwargs' instead")
+    check_num_agents(MULTIAGENT_SCENES[registered_id(cfg.id)], cfg.kwargs.get("num_agents"),
+                     f"config field '{where}.kwargs.num_agents'")

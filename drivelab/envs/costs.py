@@ -178,6 +178,13 @@ class CostSignal(gym.Wrapper):
         return {f"cost/{name}": value for name, value in self._sums.items()}
 
 
+def check_cost_budget(budget: Any, where: str = "env.cost_termination") -> float:
+    """``budget`` as a float, or one line when it is not a finite number >= 0."""
+    if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0 <= budget < math.inf:
+        raise DrivelabError(f"config field '{where}' must be a cost budget >= 0 (or null), got {budget!r}")
+    return float(budget)
+
+
 class CostTermination(gym.Wrapper):
     """End an episode, as terminated, on the step its cost first exceeds ``budget`` (a training
     curriculum: ``env.cost_termination``; evaluation plays the env as published).
@@ -196,9 +203,7 @@ class CostTermination(gym.Wrapper):
 
     def __init__(self, env: gym.Env, budget: float):
         super().__init__(env)
-        if not (math.isfinite(budget) and budget >= 0):
-            raise DrivelabError(f"config field 'env.cost_termination' must be a finite budget >= 0, got {budget}")
-        self.budget = float(budget)
+        self.budget = check_cost_budget(budget)
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(action)
@@ -206,5 +211,5 @@ class CostTermination(gym.Wrapper):
         return obs, reward, terminated or over, truncated, {**info, "cost_terminated": over}
 
 
-__all__ = ["COST_TERMS", "COST_NEEDS", "CostSignal", "CostTermination", "TermResult", "refuse_cost_to_reward", "score_costs",
+__all__ = ["COST_TERMS", "COST_NEEDS", "CostSignal", "CostTermination", "TermResult", "check_cost_budget", "refuse_cost_to_reward", "score_costs",
            "validate_cost_config"]
