@@ -211,5 +211,5 @@ class CostTermination(gym.Wrapper):
         return obs, reward, terminated or over, truncated, {**info, "cost_terminated": over}
 
 
-__all__ = ["COST_TERMS", "COST_NEEDS", "CostSignal", "CostTermination", "TermResult", "check_cost_budget", "refuse_cost_to_reward", "score_costs",
-           "validate_cost_config"]
+__all__ = ["COST_TERMS", "COST_NEEDS", "CostSignal", "CostTermination", "TermResult",
+           "check_cost_budget", "refuse_cost_to_reward", "score_costs", "validate_cost_config"]
