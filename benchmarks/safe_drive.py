@@ -63,10 +63,11 @@ RECORDS = Path(__file__).resolve().parent / "results" / "safe_drive_runs"
 
 
 def heldout(run_dir: Path, episodes: int) -> dict:
-    """The run's checkpoints/best on the held-out scenarios (cached in RUN/heldout.json)."""
+    """The run's checkpoints/best on the held-out scenarios (cached in RUN/heldout.json, with each
+    episode's outcomes: played again for a cache without them)."""
     cache = run_dir / "heldout.json"
-    if cache.is_file():
-        return json.loads(cache.read_text())
+    if cache.is_file() and "per_episode" in (kept := json.loads(cache.read_text())):
+        return kept
     best = run_dir / "checkpoints" / "best"
     result, _, _ = evaluate_checkpoint(best, episodes, HELDOUT_ENV, num_envs=2)
     row = {**outcomes(result), "step": checkpoint_step(best)}
@@ -75,8 +76,12 @@ def heldout(run_dir: Path, episodes: int) -> dict:
 
 
 def outcomes(result) -> dict:
+    """The means of METRICS and, under ``per_episode``, each episode's outcomes and length (for a
+    model card, benchmarks/ship_driver.py; the cost rate is the total cost over the total length)."""
     summary = result.summary()
-    return {m: summary[m] for m in METRICS if m in summary}
+    per_episode = {m: [round(float(x), 4) for x in result.metrics[m]] for m in METRICS if m in result.metrics}
+    return {**{m: summary[m] for m in METRICS if m in summary},
+            "per_episode": {**per_episode, "length": [int(n) for n in result.lengths]}}
 
 
 def training_record(run_dir: Path) -> dict:
@@ -126,12 +131,12 @@ def records_in(folder: Path) -> dict[str, dict[str, dict]]:
 
 def baseline_outcomes(folder: Path, names: list[str], episodes: int) -> dict:
     """The reference policies on the held-out scenarios, kept in FOLDER/baselines.json (with its
-    provenance) and played again only for a policy or an episode count it lacks."""
+    provenance) and played again only for a policy, an episode count or the per-episode outcomes it lacks."""
     path = folder / "baselines.json"
     kept = json.loads(path.read_text()) if path.is_file() else {}
     if kept.get("episodes") != episodes:
         kept = {"episodes": episodes, "policies": {}}
-    missing = [name for name in names if name not in kept["policies"]]
+    missing = [name for name in names if "per_episode" not in kept["policies"].get(name, {})]
     if missing:
         started = time.time()
         for name in missing:
@@ -247,7 +252,8 @@ def main() -> int:
                 raise SystemExit(f"interrupted; the same command resumes {arm} seed {seed} in {run_dir}") from None
             record = {"arm": arm, "seed": seed, "config": str(config.relative_to(CONFIGS.parent.parent)),
                       "config_sha256": config_sha256(config), "overrides": overrides, "episodes": args.episodes,
-                      **trained, **heldout(run_dir, args.episodes), **training_record(run_dir)}
+                      **trained, **{k: v for k, v in heldout(run_dir, args.episodes).items() if k != "per_episode"},
+                      **training_record(run_dir)}
             path.write_text(json.dumps(record, indent=1) + "\n")
             print(json.dumps({k: v for k, v in record.items() if k not in ("selection", "training_cost_curve")}),
                   flush=True)

@@ -44,7 +44,7 @@ SAFE_PROTOCOL = ("MetaDrive's generalization protocol with a cost: trained on {t
                  "default traffic, accidents on the road, a crash does not end the episode), episode k on "
                  "scenario k; cost: 1 for each step out of the road or in contact with a vehicle or an object")
 # What the card keeps of each held-out episode (replayed by tests/test_drivers.py), when heldout.json has it.
-PER_EPISODE = ("success_rate", "route_completion", "cost")
+PER_EPISODE = ("success_rate", "route_completion", "cost", "length")
 
 
 def observation_description(env_kwargs: dict) -> str:
@@ -69,6 +69,9 @@ def main() -> int:
     best = args.run / "checkpoints" / "best"
     heldout = json.loads((args.run / "heldout.json").read_text())
     expert = json.loads(args.benchmark.read_text())["baselines"]["metadrive-expert"]
+    for what, outcomes in ((args.run / "heldout.json", heldout), (f"{args.benchmark}'s expert", expert)):
+        if "per_episode" not in outcomes:   # the card's CIs and its replayed episodes need them
+            raise SystemExit(f"{what} has no per-episode outcomes (written before they were kept): evaluate again")
     if heldout["step"] != checkpoint_step(best):
         raise SystemExit(f"{args.run / 'heldout.json'} is of step {heldout['step']}, checkpoints/best of {checkpoint_step(best)}")
     policy = api.load(best)
@@ -91,10 +94,11 @@ def main() -> int:
                              f"{cfg.eval.seed}-{cfg.eval.seed + cfg.eval.episodes - 1}, every {cfg.eval.every:,} steps"
                              + ("" if cfg.eval.cost_limit is None else
                                 f", evaluations with a mean episode cost <= {cfg.eval.cost_limit:g} first"),
-                # the config's own time budget when it has one (training.json's minutes include the
-                # evaluation of the final policy after it)
-                "reproduce": f"drivelab train --config {args.config} --seed {cfg.seed} --max_minutes "
-                             f"{cfg.max_minutes or round(training['minutes']):g} --run-dir runs/{args.name} && "
+                # the config's own budget: in decisions (the same on every CPU) without a time budget,
+                # else its minutes (training.json's minutes include the evaluation after it)
+                "reproduce": f"drivelab train --config {args.config} --seed {cfg.seed} "
+                             + (f"--max_minutes {cfg.max_minutes:g}" if cfg.max_minutes else f"--steps {cfg.steps}")
+                             + f" --run-dir runs/{args.name} && "
                              f"drivelab eval runs/{args.name}/checkpoints/best --env {args.env} "
                              f"--episodes {len(heldout['per_episode']['success_rate'])} --num-envs 2 --json",
             },

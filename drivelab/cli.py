@@ -449,8 +449,10 @@ def cmd_models() -> int:
     for name in shipped_drivers():
         card = read_card(DRIVERS_DIR / name)
         mine = card.get("evaluation", {}).get("policies", {}).get(name, {})
-        numbers = ", ".join(f"{m} {mine[m]['mean']:.2f}" for m in CARD_METRICS[:1] + CARD_METRICS[-1:] if m in mine)
-        print(f"{name:<20}{card.get('training', {}).get('algo', '?'):<6}{card.get('summary', '')} ({numbers})")
+        # success and route completion, and the episode cost of a driver evaluated with one
+        numbers = ", ".join(f"{m} {mine[m]['mean']:.2f}" for m in (*CARD_METRICS[:1], *CARD_METRICS[-1:], "cost")
+                            if m in mine)
+        print(f"{name:<22}{card.get('training', {}).get('algo', '?'):<6}{card.get('summary', '')} ({numbers})")
     print("(drivelab eval NAME --card shows a model card; drivelab.load(NAME) loads one)")
     return 0
 

@@ -198,6 +198,15 @@ def test_card_shows_the_cost_with_its_ci_and_a_dash_where_a_policy_lacks_it():
     assert rows[0][:6] == ["policy", *CARD_METRICS, "cost"]
     assert rows[1][0] == "safe" and rows[1][5] == "1.000 ± " + f"{mine['cost']['ci95']:.3f}"
     assert rows[2][0] == "metadrive-expert" and rows[2][5] == "-" and len(rows[2]) == 6
+    # with the episodes' lengths the cost rate too: 4 cost over 300 steps, its CI by the delta method
+    # (by hand: cost - rate x length = -4/3, 7/3, -1/3, -2/3; sample std 1.6102, t(0.975, 3) = 3.1824,
+    # over sqrt(4) and the mean length 75)
+    rated = card_metrics({**per_episode, "length": [100, 50, 100, 50]})
+    assert rated["cost_rate"]["mean"] == pytest.approx(4 / 300, abs=1e-6)
+    assert rated["cost_rate"]["ci95"] == pytest.approx(3.1824 * 1.6102 / 2 / 75, rel=1e-3)
+    rows = _card_rows(format_card(_card({"safe": rated, "metadrive-expert": expert})))
+    assert rows[0][5:7] == ["cost", "cost_rate"] and rows[1][6] == "0.0133 ± " + f"{rated['cost_rate']['ci95']:.4f}"
+    assert rows[2][6] == "-"
     # a card without cost: no cost column, every cell under its own header
     rows = _card_rows(format_card(_card({"old": expert, "metadrive-expert": expert})))
     assert rows[0][:5] == ["policy", *CARD_METRICS] and "cost" not in rows[0]

@@ -39,8 +39,9 @@ SUMS = "SHA256SUMS"
 DRIVER_FILES = ("tensors.safetensors", "state.json", CARD)
 # The metrics a card reports, in its order: MetaDrive's episode outcomes and how far the car got.
 CARD_METRICS = ("success_rate", "crash_rate", "out_of_road_rate", "route_completion")
-# ... and after them, when the evaluation has it: the mean episode cost (SafeMetaDrive, drivelab.envs.costs).
-COST_CARD_METRICS = ("cost",)
+# ... and after them, when the evaluation has it: the mean episode cost (SafeMetaDrive, drivelab.envs.costs)
+# and, with the episodes' lengths, the cost rate (total cost over total steps, as `drivelab eval`'s).
+COST_CARD_METRICS = ("cost", "cost_rate")
 
 
 def shipped_drivers() -> list[str]:
@@ -165,9 +166,16 @@ def format_card(card: dict) -> str:
         header = "    {:<18}" + "{:>22}" * len(metrics)
         lines.append(header.format("policy", *metrics) + "    (mean ± 95% CI of the mean)")
         for who, result in policies.items():
-            cells = [f"{result[m]['mean']:.3f} ± {result[m]['ci95']:.3f}" if m in result else "-" for m in metrics]
-            lines.append(header.format(who, *cells))
+            lines.append(header.format(who, *(_cell(result, m) for m in metrics)))
     return "\n".join(lines)
+
+
+def _cell(result: dict, metric: str) -> str:
+    """A card's cell: mean ± 95% CI (a cost per step, ~0.01, to 4 digits), or "-" when the policy lacks it."""
+    if metric not in result:
+        return "-"
+    digits = 4 if metric == "cost_rate" else 3
+    return f"{result[metric]['mean']:.{digits}f} ± {result[metric]['ci95']:.{digits}f}"
 
 
 def model_card(path: str | Path) -> str:
@@ -180,7 +188,8 @@ def model_card(path: str | Path) -> str:
 
 def card_metrics(per_episode: dict[str, list[float]]) -> dict[str, dict[str, float]]:
     """{metric: {mean, ci95}} of per-episode outcomes (95% CI of the mean, Student's t): the card's
-    metrics that ``per_episode`` holds, the episode cost included when it does."""
+    metrics that ``per_episode`` holds, the episode cost included when it does, and the cost rate
+    when it has the episodes' ``length`` too."""
     from drivelab.training.outputs.statistics import mean_and_ci95
 
     out = {}
@@ -188,6 +197,13 @@ def card_metrics(per_episode: dict[str, list[float]]) -> dict[str, dict[str, flo
         if name in per_episode:
             mean, half = mean_and_ci95(np.asarray(per_episode[name], float))
             out[name] = {"mean": round(float(mean), 4), "ci95": round(float(half), 4)}
+    if "cost" in per_episode and "length" in per_episode:
+        cost, length = np.asarray(per_episode["cost"], float), np.asarray(per_episode["length"], float)
+        rate = cost.sum() / length.sum()
+        # a ratio of two sums: its CI by the delta method, the CI of the mean of cost - rate x length
+        # over the mean length (Cochran, Sampling Techniques, 1977, eq. 6.13)
+        _, half = mean_and_ci95(cost - rate * length)
+        out["cost_rate"] = {"mean": round(float(rate), 6), "ci95": round(float(half / length.mean()), 6)}
     return out
 
 
