@@ -50,7 +50,7 @@ def threads() -> dict:
 
 
 def provenance(started: float | None = None) -> dict:
-    """The command, the commit (and whether the tracked files had changes), the versions of what was
+    """The command, the commit (and whether tracked files outside benchmarks/results had changes), the versions of what was
     measured, the machine, the threads, and when the measurement started (``started``, a time.time()
     value; now when None) and ended (now)."""
     # Imported here, not at the top: importing this module stays cheap (torch loads with drivelab's
@@ -60,7 +60,10 @@ def provenance(started: float | None = None) -> dict:
 
     ended = time.time()
     return {"command": shlex.join(["python", *sys.argv]), "commit": git("rev-parse", "HEAD"),
-            "uncommitted_changes": bool(git("status", "--porcelain", "--untracked-files=no")),
+            # results files do not count: a benchmark rewrites its own table (and a sitting the one
+            # the sitting before it wrote), which changes no code that measures
+            "uncommitted_changes": bool(git("status", "--porcelain", "--untracked-files=no", "--", ".",
+                                            ":(exclude)benchmarks/results")),
             "versions": {"python": sys.version.split()[0], "drivelab": __version__,
                          **{name: package_version(name) for name in PACKAGES}},
             "machine": machine(), "threads": threads(),
