@@ -50,9 +50,9 @@ def threads() -> dict:
 
 
 def provenance(started: float | None = None) -> dict:
-    """The command, the commit (and whether tracked files outside benchmarks/results had changes), the versions of what was
-    measured, the machine, the threads, and when the measurement started (``started``, a time.time()
-    value; now when None) and ended (now)."""
+    """The command, the commit (and whether tracked files outside benchmarks/results had changes),
+    the versions of what was measured, the machine, the threads, and when the measurement started
+    (``started``, a time.time() value; now when None) and ended (now)."""
     # Imported here, not at the top: importing this module stays cheap (torch loads with drivelab's
     # timing), so a script may import it before it forks workers that set up torch themselves.
     from drivelab.training.run.timing import machine
