@@ -22,9 +22,6 @@ NAME, SAFE = "drivelab-driver", "drivelab-safe-driver"
 # each shipped driver and the env of its card's protocol
 HELDOUT_ENV = {NAME: "MetaDrive-validation-v0", SAFE: "SafeMetaDrive-validation-v0"}
 every_driver = pytest.mark.parametrize("name", list(HELDOUT_ENV))
-# An episode's cost counts its 0.1 s steps in contact or off the road: like route completion, it
-# may move with the engine's history (the card's episodes shared 2 engines, here one plays them).
-COST_TOLERANCE = 1.0
 
 
 def _card(name: str = NAME) -> dict:
@@ -91,12 +88,14 @@ def test_models_and_card_commands():
 # percent with the engine's history (the card's episodes shared 2 engines, here one plays them).
 @every_driver
 def test_the_card_matches_the_shipped_weights_on_its_first_scenarios(name):
-    result, _, _ = evaluate_checkpoint(name, episodes=3, env_id=HELDOUT_ENV[name], num_envs=1)
+    n = 4 if name == SAFE else 3   # the safe driver's first episode with a cost is scenario 3's
+    result, _, _ = evaluate_checkpoint(name, episodes=n, env_id=HELDOUT_ENV[name], num_envs=1)
     per_episode = _card(name)["evaluation"]["per_episode"]
-    np.testing.assert_array_equal(result.metrics["success_rate"], per_episode["success_rate"][:3])
-    np.testing.assert_allclose(result.metrics["route_completion"], per_episode["route_completion"][:3], atol=0.01)
+    np.testing.assert_array_equal(result.metrics["success_rate"], per_episode["success_rate"][:n])
+    np.testing.assert_allclose(result.metrics["route_completion"], per_episode["route_completion"][:n], atol=0.01)
     if name == SAFE:
-        np.testing.assert_allclose(result.metrics["cost"], per_episode["cost"][:3], atol=COST_TOLERANCE)
+        assert np.sum(per_episode["cost"][:n]) > 0
+        np.testing.assert_array_equal(result.metrics["cost"], per_episode["cost"][:n])
 
 
 @every_driver

@@ -163,7 +163,7 @@ def format_card(card: dict) -> str:
         metrics = CARD_METRICS + tuple(m for m in COST_CARD_METRICS
                                        if any(m in result for result in policies.values()))
         lines.append(f"  evaluation  {evaluation.get('protocol')}")
-        header = "    {:<18}" + "{:>22}" * len(metrics)
+        header = "    {:<22}" + "{:>22}" * len(metrics)
         lines.append(header.format("policy", *metrics) + "    (mean ± 95% CI of the mean)")
         for who, result in policies.items():
             lines.append(header.format(who, *(_cell(result, m) for m in metrics)))
