@@ -4,7 +4,8 @@ Every combination of the grid values and seeds is a normal drivelab run (its own
 ``SWEEP/<setting>-s<seed>``, resumable) trained inside a Ray Tune trial by the ``train``
 function that the caller hands down (:func:`drivelab.api.train`: the face above the tools), as
 many at once as the cluster has CPUs (``cpus_per_trial`` each). Running the same sweep again
-resumes unfinished runs and skips finished ones. At the end: a table of the final metrics
+resumes unfinished runs and skips finished ones (a sweep whose runs are all finished writes its
+table again without starting Ray). At the end: a table of the final metrics
 per setting (mean and 95% confidence interval over the seeds, Student's t), ``sweep.json``,
 ``sweep.md``, the runs' curves (``curves.png``, seeds grouped) and, when a grid key is numeric,
 the final metrics against it (``final.png``: MetaDrive's generalisation plot, success against
@@ -412,11 +413,17 @@ def _run_trial(config: dict, train: Callable[..., Any]) -> None:
 
     data, run_dir = config["data"], Path(config["data"]["run_dir"])
     cfg = build_config(data, where=f"sweep trial {run_dir.name}")
-    checkpoints = list_checkpoints(run_dir)
-    finished = checkpoints and int(checkpoints[-1].name.split("_")[-1]) >= cfg.steps
-    if not finished:
-        train(cfg, resume=bool(checkpoints), progress=False)
+    if not _finished(run_dir, cfg.steps):
+        train(cfg, resume=bool(list_checkpoints(run_dir)), progress=False)
     tune.report({k: v for k, v in last_metrics(run_dir).items() if math.isfinite(v)})
+
+
+def _finished(run_dir: Path, steps: int) -> bool:
+    """Whether the run in ``run_dir`` has a checkpoint at ``steps`` or later."""
+    from drivelab.training.outputs.checkpoint import list_checkpoints
+
+    checkpoints = list_checkpoints(run_dir)
+    return bool(checkpoints) and int(checkpoints[-1].name.split("_")[-1]) >= steps
 
 
 def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Path, train: Callable[..., Any],
@@ -425,21 +432,35 @@ def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Pat
     """Train every trial on Ray Tune with ``train`` (:func:`drivelab.api.train`, handed down by
     the face, which the tools may not import; Ray pickles a module-level function by reference),
     then summarise (see the module docstring). Returns the summary. ``progress``: trials done on stderr."""
-    from drivelab.envs.ray_backend import connect, import_ray
-
     trials = plan(grid, seeds)
     out = out.resolve()
     datas = [trial_config(base, t, out / t.name) for t in trials]
-    for data, t in zip(datas, trials):  # every trial's config is valid before anything runs
-        build_config(data, where=f"sweep trial {t.name}")
+    # every trial's config is valid before anything runs
+    steps = [build_config(data, where=f"sweep trial {t.name}").steps for data, t in zip(datas, trials)]
     out.mkdir(parents=True, exist_ok=True)
     (out / "sweep.yaml").write_text(yaml.safe_dump({"base": base, "grid": grid, "seeds": seeds}, sort_keys=False))
+    todo = [data for data, n in zip(datas, steps) if not _finished(Path(data["run_dir"]), n)]
+    failed = _train_on_tune(todo, train, ray_address, cpus_per_trial, max_concurrent, progress, out) if todo else []
+    summary = summarise(out, trials)
+    if failed:
+        summary["failed"] = failed
+    (out / "sweep.json").write_text(json.dumps(summary, indent=1))
+    (out / "sweep.md").write_text(format_summary(summary) + "\n")
+    plot_sweep(out, trials, summary)
+    return summary
+
+
+def _train_on_tune(datas: list[dict], train: Callable[..., Any], ray_address: str | None, cpus_per_trial: float,
+                   max_concurrent: int | None, progress: bool, out: Path) -> list[str]:
+    """Train the trials of ``datas`` on Ray Tune (see :func:`run_sweep`); returns one line per failed trial."""
+    from drivelab.envs.ray_backend import connect, import_ray
+
     _quiet_tune()
     import_ray()
     connect(ray_address)
     from ray import tune
 
-    bar = TrialProgress(len(trials), progress)
+    bar = TrialProgress(len(datas), progress)
     tuner = tune.Tuner(
         tune.with_resources(tune.with_parameters(_run_trial, train=train), {"cpu": cpus_per_trial}),
         param_space={"data": tune.grid_search(datas)},
@@ -452,14 +473,7 @@ def run_sweep(base: dict, grid: dict[str, list[Any]], seeds: list[int], out: Pat
         results = tuner.fit()
     finally:
         bar.close()
-    failed = [r for r in results if r.error is not None]
-    summary = summarise(out, trials)
-    if failed:
-        summary["failed"] = [f"{Path(r.config['data']['run_dir']).name}: {r.error}".splitlines()[0] for r in failed]
-    (out / "sweep.json").write_text(json.dumps(summary, indent=1))
-    (out / "sweep.md").write_text(format_summary(summary) + "\n")
-    plot_sweep(out, trials, summary)
-    return summary
+    return [f"{Path(r.config['data']['run_dir']).name}: {r.error}".splitlines()[0] for r in results if r.error is not None]
 
 
 def summarise(out: Path, trials: list[Trial]) -> dict:
