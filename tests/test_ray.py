@@ -168,13 +168,15 @@ def test_sweep_of_two_settings_and_two_seeds_writes_its_table(cluster, tmp_path,
     assert (out / "curves.png").stat().st_size > 0 and (out / "final.png").stat().st_size > 0
     assert sorted(p.name for p in out.iterdir() if (p / "metrics.csv").is_file()) == \
         ["lr=0.0003-s0", "lr=0.0003-s1", "lr=0.001-s0", "lr=0.001-s1"]
-    # Run again: every run is finished, so nothing is trained twice.
+    # Run again: every run is finished, so nothing is trained twice and Ray Tune is not started.
     before = (out / "lr=0.001-s1" / "metrics.csv").read_text()
+    tune_state = sorted((out / ".tune").rglob("*"))
     again = subprocess.run([sys.executable, "-m", "drivelab", "sweep", str(config), "--grid", "ppo.lr=0.0003,0.001",
                             "--seeds", "0-1", "--out", str(out), "--ray-address", cluster],
                            capture_output=True, text=True, timeout=400, env={**os.environ, "RAY_AUTH_MODE": "disabled"})
     assert again.returncode == 0, again.stderr[-3000:]
     assert (out / "lr=0.001-s1" / "metrics.csv").read_text() == before
+    assert sorted((out / ".tune").rglob("*")) == tune_state and "| lr=0.001  |" in again.stdout
 
 
 def test_an_optuna_search_of_four_trials_with_asha_ranks_them_in_its_table(cluster, tmp_path):
