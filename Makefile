@@ -30,7 +30,8 @@ install: $(VENV)/.installed
 # The drive recipe on TD3 (configs/drive_td3.yaml: its 10 minutes are the ones measured, README) for
 # 10 minutes of training, then one table on 50 validation scenarios (0-49) that no training scenario
 # and no checkpoint choice has seen: the demo's agent before and after training, the driver that
-# ships with drivelab, MetaDrive's expert and random.
+# ships with drivelab, MetaDrive's expert and random. benchmarks/demo.py measures the same into a
+# results file (benchmarks/results/demo.json: decisions, minutes, CPU gauge, commit).
 demo: install
 	rm -rf $(DEMO)
 	$(BIN)/drivelab train --config drive_td3 --max_minutes 10 --eval.every 0 --run-dir $(DEMO)
