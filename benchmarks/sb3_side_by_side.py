@@ -1,7 +1,8 @@
 """drivelab's drive recipe and Stable-Baselines3's SAC or TD3, side by side on MetaDrive's protocol.
 Not a test.
 
-    pip install stable-baselines3==2.7.0        # for this benchmark only: not a drivelab dependency
+    pip install stable-baselines3==2.9.2        # for this benchmark only: not a drivelab dependency
+                                                # (2.7 pins gymnasium < 1.3 and would downgrade drivelab's)
     python benchmarks/sb3_side_by_side.py --config configs/drive.yaml --seeds 0 1 2 --steps 150000 \\
         --runs runs/sb3 --out benchmarks/results/sb3_side_by_side.json
     python benchmarks/sb3_side_by_side.py ... --minutes 30          # the same minutes instead
@@ -186,7 +187,7 @@ def main() -> int:
     try:
         import stable_baselines3  # noqa: F401
     except ImportError:
-        raise SystemExit("this benchmark needs Stable-Baselines3: pip install stable-baselines3==2.7.0 "
+        raise SystemExit("this benchmark needs Stable-Baselines3: pip install stable-baselines3==2.9.2 "
                          "(for the benchmark only; drivelab does not depend on it)") from None
     started = time.time()
     recipe = read_yaml(args.config)
