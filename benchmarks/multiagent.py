@@ -11,6 +11,8 @@ on the scene (RUNS/CONFIG/SCENE/seed_N; an interrupted run resumes, a finished o
   ``stats_window`` cars' episodes, at its best log point; CoPO reports the best of its training);
 * deterministic evaluation of the final policy on ``--episodes`` scene episodes (seeds 0..N-1):
   success, crash, out-of-road, crashes per scene episode, efficiency, cars on the road;
+* the same episodes with sampled actions, as the cars act in training (``sampled``): the gap
+  between the two is what taking every car's mode instead of a sample changes;
 * the generalisation twist: the same policy on ``--other-scene`` (a scene it never drove);
 * env steps, minutes, env steps/s, and the CPU gauge beside them.
 
@@ -50,12 +52,13 @@ def scene_id(scene: str) -> str:
     return f"MultiAgent{scene}-v0"
 
 
-def evaluation(run_dir: Path, scene: str, episodes: int, name: str) -> dict:
-    """Deterministic scene episodes of the run's final policy on ``scene`` (cached in RUN/NAME.json)."""
+def evaluation(run_dir: Path, scene: str, episodes: int, name: str, deterministic: bool = True) -> dict:
+    """Scene episodes of the run's final policy on ``scene``, its actions the mode or sampled
+    (cached in RUN/NAME.json)."""
     cache = run_dir / f"{name}.json"
     if cache.is_file():
         return json.loads(cache.read_text())
-    result, _, _ = evaluate_checkpoint(run_dir, episodes, scene_id(scene), num_envs=2)
+    result, _, _ = evaluate_checkpoint(run_dir, episodes, scene_id(scene), num_envs=2, deterministic=deterministic)
     row = {key: value for key, value in result.summary().items() if key in EVAL_KEYS}
     cache.write_text(json.dumps(row) + "\n")
     return row
@@ -136,7 +139,8 @@ def main() -> int:
             except KeyboardInterrupt:
                 raise SystemExit(f"interrupted; the same command resumes {scene} seed {seed} in {run_dir}") from None
             row = {**trained, "steps_per_s": trained["steps"] / (60 * trained["minutes"]),
-                   "curve": training_curve(run_dir), **evaluation(run_dir, scene, args.episodes, "evaluation")}
+                   "curve": training_curve(run_dir), **evaluation(run_dir, scene, args.episodes, "evaluation"),
+                   "sampled": evaluation(run_dir, scene, args.episodes, "evaluation_sampled", deterministic=False)}
             if scene == "Intersection" and args.other_scene != scene:
                 row["other_scene"] = {"scene": args.other_scene,
                                       **evaluation(run_dir, args.other_scene, args.episodes, "other_scene")}
@@ -146,13 +150,15 @@ def main() -> int:
                   flush=True)
         scenes[scene] = {"seeds": seeds, "summary": summarise(list(seeds.values()),
                                                               ("best_training_success", *EVAL_KEYS, "steps_per_s")),
+                         "sampled": summarise([row["sampled"] for row in seeds.values()], EVAL_KEYS),
                          "copo_published": {name: table.get(scene) for name, table in COPO_PUBLISHED.items()}}
     gauge_after = cpu_gauge_ms()  # measured before provenance(), so that its end time follows every measurement
     result = {"benchmark": f"multiagent-{args.config}", **provenance(started),
               "cpu_gauge_ms": [gauge_before, gauge_after],
               "config": str(config.relative_to(CONFIGS.parent.parent)), "steps": args.steps,
               "protocol": "best training success over the cars' episodes (CoPO's measure), and deterministic "
-                          f"evaluation of the final policy on {args.episodes} scene episodes (seeds 0..N-1)",
+                          f"evaluation of the final policy on {args.episodes} scene episodes (seeds 0..N-1), "
+                          "and the same episodes with sampled actions (sampled)",
               "scenes": scenes}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")

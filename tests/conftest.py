@@ -6,6 +6,12 @@ from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
+# One OpenMP thread per process (torch, and the BLAS of every subprocess: notebook kernels, CLI
+# runs, env workers): the xdist workers and the processes they start already share the cores,
+# and a second thread per process spins waiting for a core instead of working. Set before torch
+# is imported (by drivelab, below), which reads it once.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 from drivelab.algos import ALGORITHMS
 from drivelab.envs import worker_start_method
 from flaky_env import importable_env
