@@ -10,7 +10,8 @@ Methods (``--arms``, each a config of ``drivelab/configs``):
 * ``sac_lag``: the constrained recipe, SAC-Lagrangian with a PID multiplier (``safe_drive``);
 * ``early_termination``: SAC on the early-terminated MDP, where a training episode ends at its
   first cost (``safe_drive_early_termination``; Sun et al. 2021);
-* ``ppo_lag``: PPO-Lagrangian, the baseline the field reproduces (``ppo_lag_safe_metadrive``).
+* ``ppo_lag``: PPO-Lagrangian, the baseline the field reproduces (``ppo_lag_safe_metadrive``);
+* ``ppo``: the same PPO with the cost ignored, PPO-Lagrangian's own reference (``ppo_safe_metadrive``).
 
 For each method and seed: train RUNS/ARM/seed_N for its config's ``steps`` (decisions, env steps:
 a budget that means the same on every CPU, ``--steps`` to change it; the minutes it took are
@@ -54,7 +55,8 @@ from drivelab.training.outputs.statistics import mean_and_ci95
 
 CONFIGS = Path(__file__).resolve().parent.parent / "drivelab" / "configs"
 ARMS = {"unconstrained": "safe_drive_unconstrained", "shaping": "safe_drive_shaping", "sac_lag": "safe_drive",
-        "early_termination": "safe_drive_early_termination", "ppo_lag": "ppo_lag_safe_metadrive"}
+        "early_termination": "safe_drive_early_termination", "ppo_lag": "ppo_lag_safe_metadrive",
+        "ppo": "ppo_safe_metadrive"}
 HELDOUT_ENV, EPISODES = "SafeMetaDrive-validation-v0", 200
 METRICS = ("success_rate", "cost", "cost_rate", "crash_rate", "out_of_road_rate", "route_completion")
 CONSTRAINED = "sac_lag"   # whose cost_limit is the table's
@@ -186,7 +188,7 @@ def plot(arms: dict, cost_limit: float | None, out: Path) -> None:
     import matplotlib.ticker
 
     fig, axes = plt.subplots(2, 3, figsize=(16, 8.4))
-    colors = dict(zip(ARMS, ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")))
+    colors = dict(zip(ARMS, ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")))
     for arm, data in arms.items():
         for i, (seed, row) in enumerate(data["seeds"].items()):
             label = arm if i == 0 else None
