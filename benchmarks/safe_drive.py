@@ -188,7 +188,7 @@ def plot(arms: dict, cost_limit: float | None, out: Path) -> None:
     import matplotlib.ticker
 
     fig, axes = plt.subplots(2, 3, figsize=(16, 8.4))
-    colors = dict(zip(ARMS, ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")))
+    colors = {arm: f"C{i}" for i, arm in enumerate(ARMS)}   # one colour of the default cycle per method
     for arm, data in arms.items():
         for i, (seed, row) in enumerate(data["seeds"].items()):
             label = arm if i == 0 else None
