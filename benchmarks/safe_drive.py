@@ -56,11 +56,11 @@ from drivelab.training.outputs.statistics import mean_and_ci95
 CONFIGS = Path(__file__).resolve().parent.parent / "drivelab" / "configs"
 ARMS = {"unconstrained": "safe_drive_unconstrained", "shaping": "safe_drive_shaping", "sac_lag": "safe_drive",
         "early_termination": "safe_drive_early_termination", "ppo_lag": "ppo_lag_safe_metadrive",
-        "ppo": "ppo_safe_metadrive"}
+        "cost_budget": "safe_drive_cost_budget", "ppo": "ppo_safe_metadrive"}
 HELDOUT_ENV, EPISODES = "SafeMetaDrive-validation-v0", 200
 METRICS = ("success_rate", "cost", "cost_rate", "crash_rate", "out_of_road_rate", "route_completion")
 CONSTRAINED = "sac_lag"   # whose cost_limit is the table's
-SAFE_ARMS = ("sac_lag", "early_termination", "shaping", "ppo_lag")   # the goals are checked for each
+SAFE_ARMS = ("sac_lag", "early_termination", "cost_budget", "shaping", "ppo_lag")   # the goals are checked for each
 RECORDS = Path(__file__).resolve().parent / "results" / "safe_drive_runs"
 
 
