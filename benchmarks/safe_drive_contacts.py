@@ -1,0 +1,79 @@
+"""What happens in a costly episode? A policy replayed on chosen held-out scenarios of the safety
+task, decision by decision around its contacts. A diagnosis, not a test.
+
+    python benchmarks/safe_drive_contacts.py --policy drivelab-safe-driver --scenarios 21 35 47 82 178 \\
+        --out benchmarks/results/archive/safe_drive_contacts.json
+
+Plays ``--policy`` (a shipped driver's name, a run or a checkpoint) deterministically on each
+scenario of SafeMetaDrive-validation-v0 (the held-out scenarios of benchmarks/safe_drive.py) and
+writes per episode: how it ended (success, stuck guard, step limit), its cost, the decision of the
+first contact and the car's speed there, what the car touched (MetaDrive's ``crash_vehicle``,
+``crash_object``, ``crash_building``, ``crash_sidewalk`` flags), the decisions in contact, and the
+mean steering and throttle (negative: brake) the policy chose while in contact. MetaDrive's car has
+no reverse gear by default (``enable_reverse: False``): a negative throttle only brakes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from provenance import provenance  # benchmarks/provenance.py
+from safe_drive import HELDOUT_ENV
+
+import drivelab
+from drivelab.envs import make_env
+
+TOUCHED = ("crash_vehicle", "crash_object", "crash_building", "crash_sidewalk")
+
+
+def replay(policy, env, scenario: int) -> dict:
+    """One deterministic episode on ``scenario``: how it ended and what the car did in contact."""
+    obs, info = env.reset(seed=scenario)
+    agent = env.unwrapped.metadrive.agent
+    decisions, first, cost = 0, None, 0.0
+    touched: dict[str, int] = {}
+    in_contact: list[np.ndarray] = []   # the actions chosen on the decisions in contact, (2,) each
+    done = False
+    while not done:
+        action = policy.act(obs)
+        obs, _, terminated, truncated, info = env.step(action)
+        decisions, cost, done = decisions + 1, cost + info["cost"], terminated or truncated
+        if info["collided"]:
+            if first is None:
+                first = {"decision": decisions, "speed": round(info["speed"], 2)}
+            in_contact.append(np.asarray(action, float))
+            for flag in TOUCHED:
+                touched[flag] = touched.get(flag, 0) + bool(getattr(agent, flag, False))
+    ended = "success" if info["success"] else "stuck" if info.get("stuck") else \
+        "out_of_road" if info["out_of_road"] and terminated else "step_limit" if truncated else "terminated"
+    mean_action = np.mean(in_contact, axis=0).round(2).tolist() if in_contact else None
+    return {"scenario": scenario, "ended": ended, "decisions": decisions, "cost": round(cost, 2),
+            "first_contact": first, "decisions_in_contact": len(in_contact), "touched": touched,
+            "mean_action_in_contact": {"steering": mean_action[0], "throttle": mean_action[1]} if mean_action else None}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--policy", default="drivelab-safe-driver", help="a shipped driver's name, a run or a checkpoint")
+    parser.add_argument("--scenarios", type=int, nargs="+", required=True, help="held-out scenarios (0-199)")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    started = time.time()
+    policy = drivelab.load(args.policy)
+    env = make_env(policy.env_config.on(HELDOUT_ENV))
+    episodes = []
+    for scenario in args.scenarios:
+        episodes.append(replay(policy, env, scenario))
+        print(json.dumps(episodes[-1]), flush=True)
+    env.close()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"benchmark": "safe-drive-contacts", **provenance(started), "policy": args.policy,
+                                    "env": HELDOUT_ENV, "episodes": episodes}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
