@@ -21,6 +21,7 @@ import json
 import time
 from pathlib import Path
 
+from checkpoint_selection import cached  # one JSON file of evaluations by key
 from provenance import provenance  # benchmarks/provenance.py
 from safe_drive import ARMS, EPISODES, HELDOUT_ENV, outcomes
 
@@ -37,15 +38,6 @@ def heldout(checkpoint: Path, episodes: int) -> dict:
     stuck = [float(x) for x in result.metrics.get("stuck_rate", [0.0] * len(costs))]
     return {**row, "stuck_rate": sum(stuck) / len(stuck), "total_cost": round(sum(costs), 2),
             "stuck_cost": round(sum(c for c, s in zip(costs, stuck) if s), 2)}
-
-
-def cached(path: Path, key: str, compute) -> dict:
-    """``compute()`` once per ``key``, kept in the JSON file ``path``."""
-    table = json.loads(path.read_text()) if path.is_file() else {}
-    if key not in table:
-        table[key] = compute()
-        path.write_text(json.dumps(table, indent=1) + "\n")
-    return table[key]
 
 
 def main() -> None:
