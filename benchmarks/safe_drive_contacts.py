@@ -11,6 +11,12 @@ first contact and the car's speed there, what the car touched (MetaDrive's ``cra
 ``crash_object``, ``crash_building``, ``crash_sidewalk`` flags), the decisions in contact, and the
 mean steering and throttle (negative: brake) the policy chose while in contact. MetaDrive's car has
 no reverse gear by default (``enable_reverse: False``): a negative throttle only brakes.
+
+``--escape STEERING THROTTLE DECISIONS`` (repeatable) asks what a way out would be worth: each
+scenario is played again with that fixed action held for DECISIONS decisions from the policy's
+first contact on (the policy drives before and after), and the same record is written per
+manoeuvre. A counterfactual only where the policy reaches the same first contact again (checked:
+``same_first_contact``), since MetaDrive's outcome can depend on what its engine played before.
 """
 
 from __future__ import annotations
@@ -30,21 +36,25 @@ from drivelab.envs import make_env
 TOUCHED = ("crash_vehicle", "crash_object", "crash_building", "crash_sidewalk")
 
 
-def replay(policy, env, scenario: int) -> dict:
-    """One deterministic episode on ``scenario``: how it ended and what the car did in contact."""
+def replay(policy, env, scenario: int, escape: tuple[float, float, int] | None = None) -> dict:
+    """One deterministic episode on ``scenario``: how it ended and what the car did in contact;
+    with ``escape`` = (steering, throttle, decisions), that action replaces the policy's for the
+    given decisions from the first contact on."""
     obs, info = env.reset(seed=scenario)
     agent = env.unwrapped.metadrive.agent
     decisions, first, cost = 0, None, 0.0
     touched: dict[str, int] = {}
     in_contact: list[np.ndarray] = []   # the actions chosen on the decisions in contact, (2,) each
-    done = False
+    done, override = False, 0   # decisions left of the escape manoeuvre
     while not done:
-        action = policy.act(obs)
+        action = np.array(escape[:2], np.float32) if override else policy.act(obs)
+        override = max(override - 1, 0)
         obs, _, terminated, truncated, info = env.step(action)
         decisions, cost, done = decisions + 1, cost + info["cost"], terminated or truncated
         if info["collided"]:
             if first is None:
                 first = {"decision": decisions, "speed": round(info["speed"], 2)}
+                override = int(escape[2]) if escape else 0
             in_contact.append(np.asarray(action, float))
             for flag in TOUCHED:
                 touched[flag] = touched.get(flag, 0) + bool(getattr(agent, flag, False))
@@ -61,6 +71,8 @@ def main() -> None:
     parser.add_argument("--policy", default="drivelab-safe-driver", help="a shipped driver's name, a run or a checkpoint")
     parser.add_argument("--scenarios", type=int, nargs="+", required=True, help="held-out scenarios (0-199)")
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--escape", type=float, nargs=3, action="append", default=[],
+                        metavar=("STEERING", "THROTTLE", "DECISIONS"), help="a fixed action held from the first contact")
     args = parser.parse_args()
     started = time.time()
     policy = drivelab.load(args.policy)
@@ -69,6 +81,11 @@ def main() -> None:
     for scenario in args.scenarios:
         episodes.append(replay(policy, env, scenario))
         print(json.dumps(episodes[-1]), flush=True)
+        for escape in args.escape:
+            probe = replay(policy, env, scenario, tuple(escape))
+            probe.update(escape=escape, same_first_contact=probe["first_contact"] == episodes[-1]["first_contact"])
+            episodes.append(probe)
+            print(json.dumps(probe), flush=True)
     env.close()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"benchmark": "safe-drive-contacts", **provenance(started), "policy": args.policy,
