@@ -9,7 +9,9 @@ scenario of SafeMetaDrive-validation-v0 (the held-out scenarios of benchmarks/sa
 writes per episode: how it ended (success, stuck guard, step limit), its cost, the decision of the
 first contact and the car's speed there, what the car touched (MetaDrive's ``crash_vehicle``,
 ``crash_object``, ``crash_building``, ``crash_sidewalk`` flags), the decisions in contact, and the
-mean steering and throttle (negative: brake) the policy chose while in contact. MetaDrive's car has
+mean steering and throttle (negative: brake) the policy chose while in contact, and the approach:
+for the 20 decisions before the first contact, the nearest thing the car's lidar saw (m), its
+speed (m/s) and the action chosen (did the car see the object, and what did it do?). MetaDrive's car has
 no reverse gear by default (``enable_reverse: False``): a negative throttle only brakes.
 
 ``--escape STEERING THROTTLE DECISIONS`` (repeatable) asks what a way out would be worth: each
@@ -24,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +37,14 @@ import drivelab
 from drivelab.envs import make_env
 
 TOUCHED = ("crash_vehicle", "crash_object", "crash_building", "crash_sidewalk")
+APPROACH = 20   # decisions before the first contact kept in the record
+
+
+def nearest_seen(obs: np.ndarray, config: dict) -> float:
+    """The nearest lidar return in metres: MetaDrive's lidar state observation ends with its
+    ``num_lasers`` returns, each a distance divided by the lidar's range."""
+    lidar = config["vehicle_config"]["lidar"]
+    return float(np.min(np.asarray(obs)[-lidar["num_lasers"]:]) * lidar["distance"])
 
 
 def replay(policy, env, scenario: int, escape: tuple[float, float, int] | None = None) -> dict:
@@ -41,7 +52,8 @@ def replay(policy, env, scenario: int, escape: tuple[float, float, int] | None =
     with ``escape`` = (steering, throttle, decisions), that action replaces the policy's for the
     given decisions from the first contact on."""
     obs, info = env.reset(seed=scenario)
-    agent = env.unwrapped.metadrive.agent
+    agent, config = env.unwrapped.metadrive.agent, env.unwrapped.metadrive.config
+    approach: deque = deque(maxlen=APPROACH)   # (seen m, speed m/s, steering, throttle) per decision
     decisions, first, cost = 0, None, 0.0
     touched: dict[str, int] = {}
     in_contact: list[np.ndarray] = []   # the actions chosen on the decisions in contact, (2,) each
@@ -51,6 +63,9 @@ def replay(policy, env, scenario: int, escape: tuple[float, float, int] | None =
         override = max(override - 1, 0)
         obs, _, terminated, truncated, info = env.step(action)
         decisions, cost, done = decisions + 1, cost + info["cost"], terminated or truncated
+        if first is None:
+            approach.append([round(nearest_seen(obs, config), 1), round(info["speed"], 1),
+                             *np.round(np.asarray(action, float), 2).tolist()])
         if info["collided"]:
             if first is None:
                 first = {"decision": decisions, "speed": round(info["speed"], 2)}
@@ -63,6 +78,8 @@ def replay(policy, env, scenario: int, escape: tuple[float, float, int] | None =
     mean_action = np.mean(in_contact, axis=0).round(2).tolist() if in_contact else None
     return {"scenario": scenario, "ended": ended, "decisions": decisions, "cost": round(cost, 2),
             "first_contact": first, "decisions_in_contact": len(in_contact), "touched": touched,
+            "approach": {"columns": ["seen_m", "speed_m_s", "steering", "throttle"], "decisions": list(approach)}
+            if first else None,
             "mean_action_in_contact": {"steering": mean_action[0], "throttle": mean_action[1]} if mean_action else None}
 
 
