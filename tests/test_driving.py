@@ -12,7 +12,8 @@ import drivelab  # noqa: F401
 from drivelab.config import EnvConfig
 from drivelab.envs import make_env
 from drivelab.envs.filters import apply_filters, binarize, crop, resize, sobel
-from drivelab.envs.rewards import cte_reward, idle_penalty, lane_reward, progress_reward, score, validate_reward_config
+from drivelab.envs.rewards import (cte_reward, headway_penalty, idle_penalty, lane_reward, progress_reward, score,
+                                  validate_reward_config)
 from drivelab.envs.wrappers import CruiseControl, DifferentialDrive, FixedThrottle, wheel_velocities
 from drivelab.training.outputs.episodes import episode_info
 from drivelab.errors import DrivelabError
@@ -62,6 +63,31 @@ def test_reward_terms_by_hand():
     total, parts, end = score(validate_reward_config({"cte": {"weight": 2.0, "max_cte": 1.5}, "native": {"weight": 0.5}}),
                               info, None)
     assert parts == pytest.approx({"cte": 2 * 0.75, "native": 0.2}) and total == pytest.approx(1.7) and not end
+
+
+def test_headway_penalty_is_the_two_second_rule():
+    # 10 m/s: closer than 20 m to what is ahead costs 1 per step; 1.5 s asks for 15 m
+    moving = {"speed": 10.0, "ahead_m": 18.0}
+    assert headway_penalty(moving, None).value == -1.0 and headway_penalty(moving, None, seconds=1.5).value == 0.0
+    assert headway_penalty({**moving, "ahead_m": 20.5}, None).value == 0.0
+    # a car standing or creeping (under min_speed) behind an obstacle pays nothing
+    assert headway_penalty({"speed": 0.5, "ahead_m": 1.0}, None).value == 0.0
+    assert headway_penalty({"speed": 0.5, "ahead_m": 0.4}, None, min_speed=0.2).value == -1.0
+
+
+def test_lidar_ahead_reads_the_lasers_around_the_heading():
+    from drivelab.envs.metadrive import lidar_ahead
+
+    lidar = {"num_lasers": 240, "distance": 50.0}   # 1.5 degrees a laser: +-10 degrees is lasers 0-6 and 234-239
+    obs = np.concatenate([np.zeros(19), np.ones(240)]).astype(np.float32)   # the state part first, then the lasers
+    assert lidar_ahead(obs, lidar) == 50.0, "nothing in range reads as the lidar's range"
+    obs[19 + 120] = 0.1   # 5 m straight behind: not ahead
+    obs[19 + 7] = 0.2     # 10.5 degrees to the left: outside the cone
+    assert lidar_ahead(obs, lidar) == 50.0
+    obs[19 + 236] = 0.3   # 6 degrees to the right
+    assert lidar_ahead(obs, lidar) == pytest.approx(15.0)
+    obs[19] = 0.25        # straight ahead
+    assert lidar_ahead(obs, lidar) == pytest.approx(12.5)
 
 
 def test_cte_reward_paid_per_route_progress():

@@ -51,7 +51,8 @@ def _check_metadrive_id():
             if terminated or truncated:
                 break
         assert t == 24 and truncated and not terminated, "the step limit is a truncation, not a termination"
-        assert set(info) >= {"success", "crash", "out_of_road", "route_completion", "cost", "speed"}
+        assert set(info) >= {"success", "crash", "out_of_road", "route_completion", "cost", "speed", "ahead_m"}
+        assert 0.0 < info["ahead_m"] <= 50.0
         assert info["timeout"] and not info["success"], "a car that stood still until the step limit timed out"
         frame = env.unwrapped.render_mode is None and env.unwrapped.metadrive.render(
             mode="topdown", window=False, screen_size=(64, 64))

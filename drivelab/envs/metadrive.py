@@ -20,8 +20,9 @@ What this adapter adds to ``metadrive.MetaDriveEnv``:
   ``route_completion`` (0..1), ``cost``, ``speed`` (m/s) and ``scenario``, plus the lane geometry
   that driving rewards and metrics are written against (:func:`lane_geometry`): ``cte``,
   ``heading_error``, ``speed_along_lane``, ``collided``, ``on_solid_line`` and
-  ``on_broken_line`` (this step) and ``native_reward``. Pass ``full_info=True`` for MetaDrive's
-  own dict as well.
+  ``on_broken_line`` (this step) and ``native_reward``; with state observations also ``ahead_m``,
+  the nearest lidar return within 10 degrees of the heading (:func:`lidar_ahead`, read by the
+  ``headway`` reward term). Pass ``full_info=True`` for MetaDrive's own dict as well.
 * **Cars that can go nowhere.** On the ``SafeMetaDrive-*`` ids (where crashes do not end the
   episode) a car that rolled over, stalled or stays pinned in a collision ends its episode as
   truncated, with ``info["rolled_over"]`` or ``info["stuck"]`` (:class:`StuckGuard`,
@@ -56,6 +57,19 @@ DEFAULTS: dict[str, Any] = {"use_render": False, "horizon": 1000, "log_level": l
 
 # MetaDrive's own default: an env step is decision_repeat physics steps of 0.02 s (0.1 s).
 DECISION_REPEAT = 5
+
+# The cone info["ahead_m"] looks along: +-10 degrees of the heading, about a lane either side at 17 m.
+AHEAD_DEGREES = 10.0
+
+
+def lidar_ahead(obs: np.ndarray, lidar: dict) -> float:
+    """The nearest lidar return (m) within :data:`AHEAD_DEGREES` of the car's heading (the lidar's
+    range when nothing is there). MetaDrive's state observation ends with its ``num_lasers`` returns,
+    each a distance over the range; laser 0 points along the heading, the others follow round."""
+    lasers = int(lidar["num_lasers"])
+    k = int(lasers * AHEAD_DEGREES / 360)
+    returns = np.asarray(obs[-lasers:])
+    return float(min(returns[:k + 1].min(), returns[lasers - k:].min() if k else 1.0) * lidar["distance"])
 
 
 def held_in_simulator(kwargs: dict[str, Any], repeat: int) -> dict[str, Any]:
@@ -260,6 +274,8 @@ class MetaDriveGym(gym.Env):
         self._crashed = False
         self._left_road = False
         config = self._env.config
+        lidar = config["vehicle_config"]["lidar"]
+        self._lidar = lidar if observation == "state" and lidar["num_lasers"] > 0 else None   # for ahead_m
         self._guard = StuckGuard(config["decision_repeat"] * config["physics_world_step_size"]) \
             if (safe if stuck_guard is None else stuck_guard) else None
 
@@ -290,6 +306,8 @@ class MetaDriveGym(gym.Env):
         obs, reward, terminated, truncated, info = self._env.step(action)
         self._steps += 1
         lean = self._info(info, int(self._env.current_seed), reward)
+        if self._lidar is not None:
+            lean["ahead_m"] = lidar_ahead(obs, self._lidar)
         terminated, truncated = bool(terminated), bool(truncated)
         if self._guard is not None:
             agent = self._env.agent

@@ -8,10 +8,12 @@ A reward config maps term names to their parameters (``weight`` scales the term)
       native: {weight: 0.0}
       idle: {weight: 0.1, min_speed: 2.0}                           # waiting costs 0.1 per step
       cost: {weight: 5.0}                # minus 5 x the step's cost (drivelab.envs.costs): a fixed price
+      headway: {weight: 1.0, seconds: 2.0}   # closer than 2 s to what is ahead costs 1 per step
 
 Each term is a pure function of the step's ``info`` (the lane geometry drivelab's driving envs
 report: ``cte``, ``heading_error``, ``speed``, ``speed_along_lane``, ``collided``,
-``out_of_road``, ``route_completion``, ``native_reward``, ``cost``) and the previous step's info (for
+``out_of_road``, ``route_completion``, ``native_reward``, ``cost``; MetaDrive's state observations
+also ``ahead_m``) and the previous step's info (for
 progress). :class:`RewardShaping` replaces the env's reward by the weighted sum, reports each
 term's episode sum as ``info["reward/<term>"]`` (logged as ``episode/reward/<term>``, so a user
 sees which term drives the behaviour), and ends the episode where a term says so.
@@ -106,16 +108,30 @@ def cost_penalty(info: dict, prev: dict | None) -> TermResult:
     return TermResult(-float(info["cost"]))
 
 
+def headway_penalty(info: dict, prev: dict | None, seconds: float = 2.0, min_speed: float = 1.0) -> TermResult:
+    """-1 for each step whose time headway, the distance to the nearest thing ahead
+    (``info["ahead_m"]``, m) over the speed (m/s), is under ``seconds`` while the car moves at
+    ``min_speed`` or more: the two-second rule of driving schools, as a price.
+
+    Why: a crash price (MetaDrive's penalties, ``cost``, or the end of the episode under
+    ``env.cost_termination``) arrives only at the contact. On SafeMetaDrive the cars saw the
+    object they hit for two seconds and more and braked within the last second or so
+    (docs/results.md, "Safe driving"); this term prices the approach itself.
+    """
+    speed = info["speed"]
+    return TermResult(-1.0 if speed >= min_speed and info["ahead_m"] < seconds * speed else 0.0)
+
+
 TERMS: dict[str, Callable[..., TermResult]] = {
     "cte": cte_reward, "lane": lane_reward, "native": native_reward, "progress": progress_reward,
-    "idle": idle_penalty, "cost": cost_penalty,
+    "idle": idle_penalty, "cost": cost_penalty, "headway": headway_penalty,
 }
 
 
 # The info keys each shipped term reads: a term is refused, in one line, on an env that lacks them.
 NEEDS: dict[str, tuple[str, ...]] = {
     "cte": ("cte",), "lane": ("cte", "heading_error", "speed"), "native": (), "progress": ("route_completion",),
-    "idle": ("speed",), "cost": ("cost",),
+    "idle": ("speed",), "cost": ("cost",), "headway": ("ahead_m", "speed"),
 }
 
 
@@ -172,7 +188,7 @@ def validate_reward_config(config: dict[str, Any], where: str = "env.reward") ->
 
 _PROBE_INFO = {"cte": 0.0, "heading_error": 0.0, "speed": 0.0, "speed_along_lane": 0.0, "collided": False,
                "out_of_road": False, "route_completion": 0.0, "native_reward": 0.0, "cost": 0.0,
-               "on_solid_line": False, "on_broken_line": False}
+               "on_solid_line": False, "on_broken_line": False, "ahead_m": 50.0}
 
 
 def missing_info(config: dict[str, dict], needs: dict[str, tuple[str, ...]], info: dict, kind: str, hint: str) -> None:
