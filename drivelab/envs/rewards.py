@@ -115,7 +115,7 @@ def headway_penalty(info: dict, prev: dict | None, seconds: float = 2.0, min_spe
 
     Why: a crash price (MetaDrive's penalties, ``cost``, or the end of the episode under
     ``env.cost_termination``) arrives only at the contact. On SafeMetaDrive the cars had the
-    nearest lidar return 12-29 m ahead 2 s before a contact and still met the object at 2-10 m/s
+    nearest lidar return 12-29 m away 2 s before a contact and still met the object at 2-10 m/s
     (docs/results.md, "Safe driving"): this term prices the approach itself.
     """
     speed = info["speed"]
