@@ -35,16 +35,10 @@ from safe_drive import HELDOUT_ENV
 
 import drivelab
 from drivelab.envs import make_env
+from drivelab.envs.metadrive import lidar_returns
 
 TOUCHED = ("crash_vehicle", "crash_object", "crash_building", "crash_sidewalk")
 APPROACH = 20   # decisions before the first contact kept in the record
-
-
-def nearest_seen(obs: np.ndarray, config: dict) -> float:
-    """The nearest lidar return in metres: MetaDrive's lidar state observation ends with its
-    ``num_lasers`` returns, each a distance divided by the lidar's range."""
-    lidar = config["vehicle_config"]["lidar"]
-    return float(np.min(np.asarray(obs)[-lidar["num_lasers"]:]) * lidar["distance"])
 
 
 def replay(policy, env, scenario: int, escape: tuple[float, float, int] | None = None) -> dict:
@@ -52,7 +46,7 @@ def replay(policy, env, scenario: int, escape: tuple[float, float, int] | None =
     with ``escape`` = (steering, throttle, decisions), that action replaces the policy's for the
     given decisions from the first contact on."""
     obs, info = env.reset(seed=scenario)
-    agent, config = env.unwrapped.metadrive.agent, env.unwrapped.metadrive.config
+    agent, lidar = env.unwrapped.metadrive.agent, env.unwrapped.metadrive.config["vehicle_config"]["lidar"]
     approach: deque = deque(maxlen=APPROACH)   # (seen m, speed m/s, steering, throttle) per decision
     decisions, first, cost = 0, None, 0.0
     touched: dict[str, int] = {}
@@ -63,14 +57,15 @@ def replay(policy, env, scenario: int, escape: tuple[float, float, int] | None =
         override = max(override - 1, 0)
         obs, _, terminated, truncated, info = env.step(action)
         decisions, cost, done = decisions + 1, cost + info["cost"], terminated or truncated
+        taken = np.asarray(action, float)
         if first is None:
-            approach.append([round(nearest_seen(obs, config), 1), round(info["speed"], 1),
-                             *np.round(np.asarray(action, float), 2).tolist()])
+            approach.append([round(float(lidar_returns(obs, lidar).min()), 1), round(info["speed"], 1),
+                             *taken.round(2).tolist()])
         if info["collided"]:
             if first is None:
                 first = {"decision": decisions, "speed": round(info["speed"], 2)}
                 override = int(escape[2]) if escape else 0
-            in_contact.append(np.asarray(action, float))
+            in_contact.append(taken)
             for flag in TOUCHED:
                 touched[flag] = touched.get(flag, 0) + bool(getattr(agent, flag, False))
     ended = "success" if info["success"] else "stuck" if info.get("stuck") else \

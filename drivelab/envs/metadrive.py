@@ -62,14 +62,18 @@ DECISION_REPEAT = 5
 AHEAD_DEGREES = 10.0
 
 
+def lidar_returns(obs: np.ndarray, lidar: dict) -> np.ndarray:
+    """(num_lasers,) lidar returns in metres (the range where nothing is hit): MetaDrive's state
+    observation ends with them, each a distance over the range; laser 0 points along the heading,
+    the others follow round."""
+    return np.asarray(obs[-int(lidar["num_lasers"]):]) * lidar["distance"]
+
+
 def lidar_ahead(obs: np.ndarray, lidar: dict) -> float:
-    """The nearest lidar return (m) within :data:`AHEAD_DEGREES` of the car's heading (the lidar's
-    range when nothing is there). MetaDrive's state observation ends with its ``num_lasers`` returns,
-    each a distance over the range; laser 0 points along the heading, the others follow round."""
-    lasers = int(lidar["num_lasers"])
-    k = int(lasers * AHEAD_DEGREES / 360)
-    returns = np.asarray(obs[-lasers:])
-    return float(min(returns[:k + 1].min(), returns[lasers - k:].min() if k else 1.0) * lidar["distance"])
+    """The nearest lidar return (m) within :data:`AHEAD_DEGREES` of the car's heading."""
+    returns = lidar_returns(obs, lidar)
+    k = int(len(returns) * AHEAD_DEGREES / 360)
+    return float(min(returns[:k + 1].min(), returns[len(returns) - k:].min(initial=lidar["distance"])))
 
 
 def held_in_simulator(kwargs: dict[str, Any], repeat: int) -> dict[str, Any]:
